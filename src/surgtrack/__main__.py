@@ -1,0 +1,3 @@
+from surgtrack.cli import app
+
+app()

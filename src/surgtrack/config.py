@@ -1,0 +1,120 @@
+"""One typed configuration for the whole method; names follow the paper's symbols (DESIGN.md section 3)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields
+
+
+@dataclass
+class PreprocessConfig:
+    """Frame preprocessing (Stage 2, step 1)."""
+
+    bilateral_d: int = 5  # bilateral filter diameter, pixels (0 disables)
+    bilateral_sigma_depth: float = 0.01  # m
+    bilateral_sigma_space: float = 3.0  # pixels
+    mask_erosion: int = 2  # pixels eroded from the instrument mask before lifting points
+    max_grazing_deg: float = 80.0  # drop points whose normal is further than this from the viewing ray
+    min_depth: float = 0.1  # m
+    max_depth: float = 2.0  # m
+
+
+@dataclass
+class RansacConfig:
+    """Coarse pose by RANSAC over 3-point rigid hypotheses (paper eq. 4)."""
+
+    features: str = "sift"  # sift | orb | xfeat
+    max_keypoints: int = 800
+    ratio_test: float = 0.8  # Lowe ratio for descriptor matching
+    hypotheses: int = 2000
+    inlier_dist: float = 0.01  # m
+    inlier_normal_deg: float = 20.0
+    min_inliers: int = 5
+    max_jump_trans: float = 0.15  # m between consecutive frames: beyond is physically implausible
+    max_jump_rot_deg: float = 60.0
+
+
+@dataclass
+class PoolConfig:
+    """Posture memory pool P = {(xi_i, M_i)} (paper eq. 5)."""
+
+    enabled: bool = True  # False: the graph uses adjacent frames only (ablation "w/o posture memory pool")
+    keyframe_rot_deg: float = 5.0  # add a keyframe when its rotation differs by >= this from every keyframe
+    max_size: int = 60  # cap; retention keeps view coverage
+    K: int = 9  # memory frames selected as graph nodes
+    overlap_normal_deg: float = 70.0  # view overlap: normals facing the camera within this angle
+
+
+@dataclass
+class GraphConfig:
+    """Posture graph optimisation (paper eqs. 6-11)."""
+
+    enabled: bool = True  # False: RANSAC + Kabsch only (ablation "w/o posture graph")
+    w_f: float = 1.0  # weight of L_3D, matched 3D features
+    w_p: float = 1.0  # weight of L_2D, projective point-to-plane
+    w_s: float = 1.0  # weight of L_SDF, once the field has converged
+    huber_delta: float = 0.005  # m
+    iterations: int = 7
+    depth_downscale: int = 4  # projective association on depth downscaled by this factor
+    assoc_dist: float = 0.02  # m gate of projective association
+    assoc_normal_deg: float = 45.0
+    adjacent: int = 2  # adjacent (previous) frames always in the graph
+
+
+@dataclass
+class FailureConfig:
+    """Lost-instrument detection (Stage 2, step 5)."""
+
+    min_pixels: int = 150  # fewer instrument pixels with valid depth: lost
+    min_inliers: int = 8  # fewer RANSAC inliers on every pair: lost
+    min_confidence: float = 0.25
+
+
+@dataclass
+class SDFConfig:
+    """Instrument SDF Psi (Stage 1, paper eqs. 1-3)."""
+
+    enabled: bool = True
+    occ_surf: bool = True  # False: plain TSDF-style fit without L_occ and L_surf (ablation)
+    voxel_size: float = 0.004  # m
+    truncation: float = 0.01  # m, band around the observed depth for V_surf
+    delta: float = 0.002  # m, target of Psi on occluded samples (eq. 2)
+    alpha: float = 1.0  # weight of L_occ
+    beta: float = 1.0  # weight of L_surf
+    w_free: float = 0.1  # free-space term in front of the surface
+    w_eik: float = 0.01  # eikonal |grad Psi| = 1
+    iterations: int = 200
+    lr: float = 0.01
+
+
+@dataclass
+class TrackerConfig:
+    """Everything the tracker needs; every field has a documented default."""
+
+    preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)
+    ransac: RansacConfig = field(default_factory=RansacConfig)
+    pool: PoolConfig = field(default_factory=PoolConfig)
+    graph: GraphConfig = field(default_factory=GraphConfig)
+    failure: FailureConfig = field(default_factory=FailureConfig)
+    sdf: SDFConfig = field(default_factory=SDFConfig)
+    seed: int = 0
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> TrackerConfig:
+        kinds = {f.name: f.type for f in fields(cls)}
+        sections = {
+            "preprocess": PreprocessConfig,
+            "ransac": RansacConfig,
+            "pool": PoolConfig,
+            "graph": GraphConfig,
+            "failure": FailureConfig,
+            "sdf": SDFConfig,
+        }
+        kw = {}
+        for k, v in d.items():
+            if k not in kinds:
+                raise ValueError(f"unknown config key {k!r}")
+            kw[k] = sections[k](**v) if k in sections else v
+        return cls(**kw)

@@ -1,0 +1,110 @@
+"""Rigid-body and camera geometry shared by every stage: SE(3) maps, pinhole projection, Kabsch."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def transform(T: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 rigid transform to an (N, 3) array of points."""
+    return p @ T[:3, :3].T + T[:3, 3]
+
+
+def rotate(T: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """Apply the rotation of a 4x4 transform to an (N, 3) array of directions."""
+    return n @ T[:3, :3].T
+
+
+def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Assemble a 4x4 transform from a rotation and a translation."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    return T
+
+
+def inv_T(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid 4x4 transform."""
+    R = T[:3, :3]
+    return make_T(R.T, -R.T @ T[:3, 3])
+
+
+def hat(w: np.ndarray) -> np.ndarray:
+    """Skew-symmetric matrix [w]_x of a 3-vector."""
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+def so3_exp(w: np.ndarray) -> np.ndarray:
+    """Rodrigues' formula: rotation matrix exp([w]_x)."""
+    theta = float(np.linalg.norm(w))
+    K = hat(w)
+    if theta < 1e-10:
+        return np.eye(3) + K
+    return np.eye(3) + np.sin(theta) / theta * K + (1 - np.cos(theta)) / theta**2 * K @ K
+
+
+def so3_log(R: np.ndarray) -> np.ndarray:
+    """Axis-angle vector of a rotation matrix (inverse of so3_exp)."""
+    cos = np.clip((np.trace(R) - 1) / 2, -1.0, 1.0)
+    theta = np.arccos(cos)
+    if theta < 1e-10:
+        return np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2
+    if np.pi - theta < 1e-6:
+        # Near pi: axis from the largest diagonal of (R + I) / 2.
+        M = (R + np.eye(3)) / 2
+        axis = M[:, np.argmax(np.diag(M))]
+        return axis / np.linalg.norm(axis) * theta
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return w * theta / (2 * np.sin(theta))
+
+
+def se3_exp(xi: np.ndarray) -> np.ndarray:
+    """Small-increment SE(3) map for xi = (rho, phi): rotation exp(phi), translation rho (left update)."""
+    return make_T(so3_exp(xi[3:]), xi[:3])
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """Geodesic angle of a rotation matrix, degrees."""
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
+
+
+def kabsch(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+    """Least-squares rigid T with dst ~ T @ src (Kabsch/Umeyama without scale), optional weights."""
+    w = np.ones(len(src)) if w is None else w
+    w = w / w.sum()
+    cs, cd = w @ src, w @ dst
+    H = (src - cs).T @ ((dst - cd) * w[:, None])
+    U, _, Vt = np.linalg.svd(H)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    return make_T(R, cd - R @ cs)
+
+
+def backproject(depth: np.ndarray, K: np.ndarray, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-frame points of valid depth pixels (inside mask): returns (N, 3) points and (N, 2) pixel (v, u)."""
+    valid = depth > 0
+    if mask is not None:
+        valid &= mask
+    v, u = np.nonzero(valid)
+    z = depth[v, u]
+    x = (u - K[0, 2]) * z / K[0, 0]
+    y = (v - K[1, 2]) * z / K[1, 1]
+    return np.stack([x, y, z], axis=1), np.stack([v, u], axis=1)
+
+
+def depth_to_xyz(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Per-pixel camera-frame points (H, W, 3) of a depth map; invalid pixels have z = 0."""
+    h, w = depth.shape
+    u, v = np.meshgrid(np.arange(w), np.arange(h))
+    x = (u - K[0, 2]) * depth / K[0, 0]
+    y = (v - K[1, 2]) * depth / K[1, 1]
+    return np.stack([x, y, depth], axis=-1)
+
+
+def project(p: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pinhole projection of camera-frame points: (N, 2) pixel (u, v) and (N,) depth z."""
+    z = p[:, 2]
+    zs = np.where(np.abs(z) < 1e-9, 1e-9, z)
+    u = K[0, 0] * p[:, 0] / zs + K[0, 2]
+    v = K[1, 1] * p[:, 1] / zs + K[1, 2]
+    return np.stack([u, v], axis=1), z
