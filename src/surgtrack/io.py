@@ -144,7 +144,8 @@ class Sequence:
         if frame.rgb.shape[:2] != (h, w):
             raise SequenceError(paths["rgb"], f"size {frame.rgb.shape[1]}x{frame.rgb.shape[0]} != depth size {w}x{h}")
         if frame.mask is not None and frame.mask.shape != (h, w):
-            raise SequenceError(paths["mask"], f"size {frame.mask.shape[1]}x{frame.mask.shape[0]} != depth size {w}x{h}")
+            mh, mw = frame.mask.shape
+            raise SequenceError(paths["mask"], f"size {mw}x{mh} != depth size {w}x{h}")
         return frame
 
     def _check_first(self) -> None:
@@ -209,7 +210,8 @@ class FolderSequence(Sequence):
     def _read(self, i: int) -> Frame:
         paths = {"rgb": self._rgb[i], "depth": self._depth[i], "mask": self.mask_path(i)}
         mask = read_mask(paths["mask"]) if self._numbers[i] in self._masks else None
-        frame = Frame(i, self.ids[i], read_rgb(paths["rgb"]), read_depth(paths["depth"], self.depth_scale), self.K, mask)
+        depth = read_depth(paths["depth"], self.depth_scale)
+        frame = Frame(i, self.ids[i], read_rgb(paths["rgb"]), depth, self.K, mask)
         return self._check_frame(frame, paths)
 
     def gt_poses(self) -> dict[str, np.ndarray]:
@@ -308,7 +310,8 @@ class ApcScene(Sequence):
         _check_consecutive(self.root, numbers)
         self._numbers = numbers
         self.ids = [f"{n:06d}" for n in numbers]
-        self._poses = {f"{n:06d}": blocks[f"Camera-to-world extrinsic matrix (camera pose) for frame-{n:06d}"] for n in numbers}
+        key = "Camera-to-world extrinsic matrix (camera pose) for frame-{:06d}"
+        self._poses = {f"{n:06d}": blocks[key.format(n)] for n in numbers}
         self.obj = obj
         thresh = self.root / "masks" / f"{obj}.thresh.txt"
         self._thresh = float(thresh.read_text().split()[0]) if thresh.is_file() else 0.5
