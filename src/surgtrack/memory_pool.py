@@ -1,0 +1,80 @@
+"""Posture memory pool P = {(xi_i, M_i)} (paper eq. 5): keyframes with pose, geometry and features.
+
+Add rule (BundleSDF's): a frame becomes a keyframe when its rotation differs by at least ``keyframe_rot_deg`` from
+every keyframe. Unlike BundleSDF the pool is capped; when full, the most redundant keyframe (the one whose nearest
+neighbour in viewing direction is closest) is dropped, never the first, so the pool keeps its view coverage.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .config import PoolConfig
+from .features import Features
+from .geometry import rotation_angle_deg
+
+
+@dataclass(eq=False)
+class Keyframe:
+    """One memory: pose xi_i (object-to-camera) and memory M_i (features, geometry grid, masked depth)."""
+
+    frame_id: str
+    pose: np.ndarray
+    features: Features  # camera frame of this keyframe
+    xyz: np.ndarray  # (h, w, 3) downscaled camera-frame grid for projective association
+    normals: np.ndarray
+    K_grid: np.ndarray
+    depth: np.ndarray  # (H, W) metres, full resolution, for the SDF fit
+    mask: np.ndarray  # (H, W) bool
+    K: np.ndarray
+
+    @property
+    def view_dir(self) -> np.ndarray:
+        """The camera's optical axis in the object frame."""
+        return self.pose[2, :3]
+
+
+def rotation_gap_deg(Ta: np.ndarray, Tb: np.ndarray) -> float:
+    """Angle of the relative rotation between two poses, degrees."""
+    return rotation_angle_deg(Ta[:3, :3] @ Tb[:3, :3].T)
+
+
+class MemoryPool:
+    """The capped set of keyframes."""
+
+    def __init__(self, cfg: PoolConfig):
+        self.cfg = cfg
+        self.keyframes: list[Keyframe] = []
+
+    def __len__(self) -> int:
+        return len(self.keyframes)
+
+    def should_add(self, pose: np.ndarray) -> bool:
+        """Add rule: rotation differs by >= keyframe_rot_deg from every keyframe."""
+        return all(rotation_gap_deg(pose, k.pose) >= self.cfg.keyframe_rot_deg for k in self.keyframes)
+
+    def add(self, kf: Keyframe) -> None:
+        self.keyframes.append(kf)
+        if len(self.keyframes) > self.cfg.max_size:
+            self.keyframes.pop(self._most_redundant())
+
+    def _most_redundant(self) -> int:
+        dirs = np.array([k.view_dir for k in self.keyframes])
+        cos = np.clip(dirs @ dirs.T, -1, 1)
+        np.fill_diagonal(cos, -1)
+        nearest = cos.max(axis=1)
+        nearest[0] = -np.inf  # the first keyframe anchors the object frame
+        return int(np.argmax(nearest))
+
+    def select(self, pose: np.ndarray, n: int, exclude: set[str] = frozenset()) -> list[Keyframe]:
+        """Up to n keyframes whose view overlaps the current one (optical axes within overlap_normal_deg), nearest
+        in viewing direction first."""
+        if not self.keyframes:
+            return []
+        d = pose[2, :3]
+        cands = [k for k in self.keyframes if k.frame_id not in exclude]
+        ang = np.array([np.degrees(np.arccos(np.clip(k.view_dir @ d, -1, 1))) for k in cands])
+        order = np.argsort(ang)
+        return [cands[i] for i in order if ang[i] <= self.cfg.overlap_normal_deg][:n]

@@ -1,0 +1,113 @@
+"""Frame preprocessing (Stage 2, step 1): depth filtering, normals, grazing-angle rejection, masked point cloud.
+
+All work happens inside a crop around the instrument mask, so the cost follows the instrument's size on screen,
+not the image size.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .config import PreprocessConfig
+from .io import Frame
+
+
+@dataclass
+class Observation:
+    """A preprocessed frame: filtered depth, per-pixel points and normals, and the instrument's valid pixels."""
+
+    frame: Frame
+    depth: np.ndarray  # (H, W) float32 metres, filtered; 0 = invalid
+    xyz: np.ndarray  # (H, W, 3) camera-frame points
+    normals: np.ndarray  # (H, W, 3) camera-frame unit normals (0 where unknown)
+    valid: np.ndarray  # (H, W) bool: instrument pixel with trusted depth and normal
+    mask: np.ndarray  # (H, W) bool: the instrument mask used (before depth checks)
+
+    @property
+    def K(self) -> np.ndarray:
+        return self.frame.K
+
+    @property
+    def n_valid(self) -> int:
+        return int(self.valid.sum())
+
+    def points(self) -> tuple[np.ndarray, np.ndarray]:
+        """The masked point cloud and its normals, camera frame."""
+        return self.xyz[self.valid], self.normals[self.valid]
+
+    def grid(self, factor: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Points and normals on a grid downscaled by ``factor`` (z = 0 outside the instrument), and its K."""
+        v = self.valid[::factor, ::factor]
+        xyz = np.where(v[..., None], self.xyz[::factor, ::factor], 0.0)
+        nrm = np.where(v[..., None], self.normals[::factor, ::factor], 0.0)
+        K = self.K.copy()
+        K[:2] /= factor  # grid pixel i is image pixel i * factor
+        return xyz, nrm, K
+
+
+def mask_bbox(mask: np.ndarray, margin: int) -> tuple[slice, slice] | None:
+    """Bounding box of a mask grown by ``margin`` pixels, clipped to the image; None for an empty mask."""
+    rows, cols = np.nonzero(mask.any(axis=1))[0], np.nonzero(mask.any(axis=0))[0]
+    if rows.size == 0:
+        return None
+    h, w = mask.shape
+    return (
+        slice(max(rows[0] - margin, 0), min(rows[-1] + margin + 1, h)),
+        slice(max(cols[0] - margin, 0), min(cols[-1] + margin + 1, w)),
+    )
+
+
+def normals_from_xyz(xyz: np.ndarray) -> np.ndarray:
+    """Unit normals from the cross product of central differences, oriented towards the camera."""
+    dx = np.zeros_like(xyz)
+    dy = np.zeros_like(xyz)
+    dx[:, 1:-1] = xyz[:, 2:] - xyz[:, :-2]
+    dy[1:-1] = xyz[2:] - xyz[:-2]
+    n = np.cross(dx, dy)
+    norm = np.linalg.norm(n, axis=-1, keepdims=True)
+    n = np.divide(n, norm, out=np.zeros_like(n), where=norm > 0)
+    flip = np.sum(n * xyz, axis=-1) > 0
+    n[flip] *= -1
+    return n
+
+
+def preprocess(frame: Frame, mask: np.ndarray, cfg: PreprocessConfig) -> Observation:
+    """Filter depth, compute normals and keep instrument pixels with trustworthy geometry."""
+    h, w = frame.depth.shape
+    xyz = np.zeros((h, w, 3), np.float32)
+    normals = np.zeros((h, w, 3), np.float32)
+    valid = np.zeros((h, w), bool)
+    depth = np.zeros((h, w), np.float32)
+    box = mask_bbox(mask, margin=max(cfg.bilateral_d, 2) + 2)
+    if box is not None:
+        rs, cs = box
+        d = frame.depth[rs, cs].astype(np.float32)
+        d = np.where((d > cfg.min_depth) & (d < cfg.max_depth), d, 0).astype(np.float32)
+        good = d > 0
+        if cfg.bilateral_d > 0:
+            f = cv2.bilateralFilter(d, cfg.bilateral_d, cfg.bilateral_sigma_depth, cfg.bilateral_sigma_space)
+            # The filter mixes in invalid zeros at hole borders: keep only pixels it changed little.
+            good &= np.abs(f - d) < 3 * cfg.bilateral_sigma_depth
+            d = np.where(good, f, 0).astype(np.float32)
+        m = mask[rs, cs].astype(np.uint8)
+        if cfg.mask_erosion > 0:
+            kernel = np.ones((2 * cfg.mask_erosion + 1,) * 2, np.uint8)
+            m = cv2.erode(m, kernel)
+        u, v = np.meshgrid(np.arange(cs.start, cs.stop), np.arange(rs.start, rs.stop))
+        K = frame.K
+        p = np.stack([(u - K[0, 2]) * d / K[0, 0], (v - K[1, 2]) * d / K[1, 1], d], axis=-1).astype(np.float32)
+        n = normals_from_xyz(p)
+        # A normal is trusted only where both neighbours in each direction have depth close to the centre.
+        dn = np.zeros_like(good)
+        dn[1:-1, 1:-1] = good[1:-1, 1:-1] & good[:-2, 1:-1] & good[2:, 1:-1] & good[1:-1, :-2] & good[1:-1, 2:]
+        ray = p / np.maximum(np.linalg.norm(p, axis=-1, keepdims=True), 1e-9)
+        cos = -np.sum(ray * n, axis=-1)
+        ok = dn & (m > 0) & (cos > np.cos(np.radians(cfg.max_grazing_deg)))
+        depth[rs, cs] = d
+        xyz[rs, cs] = p
+        normals[rs, cs] = n
+        valid[rs, cs] = ok
+    return Observation(frame, depth, xyz, normals, valid, mask)

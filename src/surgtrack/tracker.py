@@ -1,0 +1,250 @@
+"""SurgTracker: the per-frame tracking step (Stage 2) over a posture memory pool and a posture graph.
+
+    tracker = SurgTracker(TrackerConfig())
+    pose = tracker.register(frame, mask)          # first frame: fixes the object frame
+    result = tracker.track(frame, mask=None)      # every later frame
+
+The object frame has its origin at the centre of the first frame's masked point cloud (outliers removed) and axes
+parallel to the first camera's; poses are object-to-camera (x_cam = pose @ x_obj), metres.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .config import TrackerConfig
+from .features import FeatureExtractor, Features, match
+from .geometry import inv_T, make_T, transform
+from .io import Frame
+from .masking import predict_mask
+from .memory_pool import Keyframe, MemoryPool
+from .posture_graph import FeatureEdge, GraphNode, optimize_graph
+from .preprocess import Observation, preprocess
+from .ransac import plausible, ransac_pose
+
+TRACKED, LOST, RELOCALISED = "tracked", "lost", "relocalised"
+
+
+@dataclass
+class TrackResult:
+    """What track() returns: pose (None when lost), status, confidence in [0, 1] and per-stage seconds."""
+
+    pose: np.ndarray | None
+    status: str
+    confidence: float
+    timings: dict[str, float] = field(default_factory=dict)
+    inliers: int = 0
+
+
+@dataclass(eq=False)
+class _Node:
+    """A tracked frame as the graph and the pool see it."""
+
+    frame_id: str
+    pose: np.ndarray
+    features: Features
+    xyz: np.ndarray
+    normals: np.ndarray
+    K_grid: np.ndarray
+
+    def graph_node(self, fixed: bool) -> GraphNode:
+        return GraphNode(self.pose, self.xyz, self.normals, self.K_grid, fixed)
+
+
+class _Clock:
+    def __init__(self) -> None:
+        self.t = time.perf_counter()
+        self.laps: dict[str, float] = {}
+
+    def lap(self, name: str) -> None:
+        now = time.perf_counter()
+        self.laps[name] = self.laps.get(name, 0.0) + now - self.t
+        self.t = now
+
+
+def object_origin(points: np.ndarray) -> np.ndarray:
+    """Centre of the first frame's masked cloud with outliers removed (points beyond 3 MADs of the median)."""
+    med = np.median(points, axis=0)
+    dist = np.linalg.norm(points - med, axis=1)
+    mad = np.median(np.abs(dist - np.median(dist))) + 1e-6
+    keep = dist < np.median(dist) + 3 * 1.4826 * mad
+    return points[keep].mean(axis=0)
+
+
+class SurgTracker:
+    """Model-free 6-DoF tracker of one instrument."""
+
+    def __init__(self, config: TrackerConfig | None = None):
+        self.cfg = config or TrackerConfig()
+        self.extractor = FeatureExtractor(self.cfg.ransac.features, self.cfg.ransac.max_keypoints)
+        self.pool = MemoryPool(self.cfg.pool)
+        self.rng = np.random.default_rng(self.cfg.seed)
+        self.recent: deque[_Node] = deque(maxlen=max(self.cfg.graph.adjacent, 1))
+        self.lost = False
+        self.sdf = None  # callable points_obj -> (psi, grad) once the instrument SDF has converged
+        self._model_points: np.ndarray | None = None
+
+    # ----------------------------------------------------------------------------------------------- public API
+
+    def register(self, frame: Frame, mask: np.ndarray) -> np.ndarray:
+        """Start tracking on the first frame and its instrument mask; returns the first pose."""
+        obs = preprocess(frame, mask, self.cfg.preprocess)
+        if obs.n_valid < self.cfg.failure.min_pixels:
+            raise ValueError(
+                f"frame {frame.id}: only {obs.n_valid} instrument pixels with valid depth in the first mask "
+                f"(need {self.cfg.failure.min_pixels})"
+            )
+        pts, _ = obs.points()
+        pose = make_T(np.eye(3), object_origin(pts))
+        node = self._node(obs, self.extractor(obs), pose)
+        self.recent.append(node)
+        self._add_keyframe(node, obs)
+        return pose
+
+    def track(self, frame: Frame, mask: np.ndarray | None = None) -> TrackResult:
+        """One tracking step (Stage 2): preprocess, coarse pose (eq. 4), posture graph (eqs. 6-11), memory (eq. 5)."""
+        clock = _Clock()
+        if mask is None:
+            mask = self._predicted_mask(frame)
+        obs = preprocess(frame, mask, self.cfg.preprocess)
+        clock.lap("preprocess")
+        if obs.n_valid < self.cfg.failure.min_pixels:
+            return self._lose(clock)
+        feats = self.extractor(obs)
+        clock.lap("features")
+        coarse = self._coarse_pose(feats)
+        clock.lap("ransac")
+        if coarse is None:
+            return self._lose(clock)
+        pose, edges, inliers = coarse
+        node = self._node(obs, feats, pose)
+        if self.cfg.graph.enabled:
+            pose = self._optimise(node, edges)
+            node.pose = pose
+        clock.lap("graph")
+        confidence = self._confidence(node)
+        if confidence < self.cfg.failure.min_confidence:
+            return self._lose(clock, confidence)
+        status = RELOCALISED if self.lost else TRACKED
+        self.lost = False
+        self.recent.append(node)
+        if self.cfg.pool.enabled and self.pool.should_add(pose):
+            self._add_keyframe(node, obs)
+        clock.lap("pool")
+        return TrackResult(pose, status, confidence, clock.laps, inliers)
+
+    # -------------------------------------------------------------------------------------------------- stages
+
+    def _node(self, obs: Observation, feats: Features, pose: np.ndarray) -> _Node:
+        xyz, nrm, K = obs.grid(self.cfg.graph.depth_downscale)
+        return _Node(obs.frame.id, pose, feats, xyz, nrm, K)
+
+    def _pair(self, ref: _Node | Keyframe, feats: Features) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """RANSAC (eq. 4) between a reference node's features and the current ones: (T_ref_to_cur, ref, cur)."""
+        ia, ib = match(ref.features, feats, self.extractor.norm, self.cfg.ransac.ratio_test)
+        if len(ia) < self.cfg.ransac.min_inliers:
+            return None
+        src, dst = ref.features.subset(ia), feats.subset(ib)
+        res = ransac_pose(src.xyz, dst.xyz, self.cfg.ransac, self.rng, src.normals, dst.normals)
+        if res.T is None or res.n_inliers < self.cfg.failure.min_inliers:
+            return None
+        return res.T, src.xyz[res.inliers], dst.xyz[res.inliers]
+
+    def _coarse_pose(self, feats: Features) -> tuple[np.ndarray, list[tuple[_Node | Keyframe, np.ndarray,
+                                                                                np.ndarray]], int] | None:
+        """Coarse pose from the last tracked frame, else from the memory pool (re-localisation)."""
+        refs: list[_Node | Keyframe] = []
+        if not self.lost:
+            refs.append(self.recent[-1])
+        last = self.recent[-1].pose
+        pool = self.pool.select(last, len(self.pool)) if self.lost else self.pool.select(last, 3)
+        refs += [k for k in pool if k.frame_id != self.recent[-1].frame_id]
+        if self.lost:  # keyframes outside the last view too: the instrument may reappear anywhere
+            refs += [k for k in self.pool.keyframes if k not in refs]
+        for ref in refs:
+            pair = self._pair(ref, feats)
+            if pair is None:
+                continue
+            T, p_ref, p_cur = pair
+            pose = T @ ref.pose
+            if not self.lost and not plausible(pose @ inv_T(last), self.cfg.ransac):
+                continue
+            return pose, [(ref, p_ref, p_cur)], len(p_ref)
+        return None
+
+    def _optimise(self, node: _Node, edges: list) -> np.ndarray:
+        """Posture graph over the current frame, adjacent frames and K memory frames (eqs. 6-11)."""
+        others: list[_Node | Keyframe] = [e[0] for e in edges]
+        for prev in reversed(self.recent):
+            if prev not in others:
+                others.append(prev)
+        if self.cfg.pool.enabled:
+            seen = {o.frame_id for o in others}
+            for kf in self.pool.select(node.pose, self.cfg.pool.K, exclude=seen):
+                pair = self._verified_matches(kf, node)
+                others.append(kf)
+                if pair is not None:
+                    edges.append((kf, *pair))
+        nodes = [node.graph_node(fixed=False)]
+        nodes += [GraphNode(o.pose, o.xyz, o.normals, o.K_grid, True) for o in others]
+        index = {id(o): i + 1 for i, o in enumerate(others)}
+        graph_edges = [FeatureEdge(0, index[id(ref)], p_cur, p_ref) for ref, p_ref, p_cur in edges]
+        use_sdf = self.sdf is not None and self.cfg.sdf.enabled
+        poses = optimize_graph(nodes, graph_edges, self.cfg.graph, self.sdf if use_sdf else None,
+                               [0] if use_sdf else [])
+        return poses[0]
+
+    def _verified_matches(self, kf: Keyframe, node: _Node) -> tuple[np.ndarray, np.ndarray] | None:
+        """Matches with a memory frame that agree with the coarse pose (within twice the RANSAC threshold)."""
+        ia, ib = match(kf.features, node.features, self.extractor.norm, self.cfg.ransac.ratio_test)
+        if len(ia) == 0:
+            return None
+        p_kf, p_cur = kf.features.xyz[ia], node.features.xyz[ib]
+        pred = transform(node.pose @ inv_T(kf.pose), p_kf)
+        ok = np.linalg.norm(pred - p_cur, axis=1) < 2 * self.cfg.ransac.inlier_dist
+        if ok.sum() < self.cfg.ransac.min_inliers:
+            return None
+        return p_kf[ok], p_cur[ok]
+
+    def _confidence(self, node: _Node) -> float:
+        """Fraction of the frame's points that land within assoc_dist of the previous frame's surface."""
+        ref = self.recent[-1]
+        pts = node.xyz[node.xyz[..., 2] > 0]
+        if len(pts) == 0:
+            return 0.0
+        q = transform(ref.pose @ inv_T(node.pose), pts)
+        h, w = ref.xyz.shape[:2]
+        K = ref.K_grid
+        z = np.maximum(q[:, 2], 1e-6)
+        u = np.round(K[0, 0] * q[:, 0] / z + K[0, 2]).astype(int)
+        v = np.round(K[1, 1] * q[:, 1] / z + K[1, 2]).astype(int)
+        inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        target = ref.xyz[v[inside], u[inside]]
+        seen = target[:, 2] > 0
+        if seen.sum() < 10:
+            return 0.0
+        close = np.linalg.norm(q[inside][seen] - target[seen], axis=1) < self.cfg.graph.assoc_dist
+        return float(close.mean())
+
+    def _add_keyframe(self, node: _Node, obs: Observation) -> None:
+        kf = Keyframe(node.frame_id, node.pose, node.features, node.xyz, node.normals, node.K_grid,
+                      obs.depth, obs.valid, obs.K)
+        self.pool.add(kf)
+        pts = transform(inv_T(node.pose), node.xyz[node.xyz[..., 2] > 0])
+        self._model_points = pts if self._model_points is None else np.concatenate([self._model_points, pts])
+
+    def _predicted_mask(self, frame: Frame) -> np.ndarray:
+        """No mask given: render the keyframes' points at the last pose and keep depth-consistent pixels."""
+        if self._model_points is None:
+            return np.zeros(frame.depth.shape, bool)
+        return predict_mask(self._model_points, self.recent[-1].pose, frame.K, frame.depth)
+
+    def _lose(self, clock: _Clock, confidence: float = 0.0) -> TrackResult:
+        self.lost = True
+        clock.lap("pool")
+        return TrackResult(None, LOST, confidence, clock.laps)
+
