@@ -1,3 +1,3 @@
-from surgtrack.cli import app
+from surgtrack.cli import main
 
-app()
+main()

@@ -107,7 +107,9 @@ def match(a: Features, b: Features, norm: int, ratio: float) -> tuple[np.ndarray
         back[m.queryIdx] = m.trainIdx
     ia, ib = [], []
     for pair in ab:
-        if len(pair) == 2 and pair[0].distance < ratio * pair[1].distance and back[pair[0].trainIdx] == pair[0].queryIdx:
+        if len(pair) < 2 or pair[0].distance >= ratio * pair[1].distance:
+            continue
+        if back[pair[0].trainIdx] == pair[0].queryIdx:
             ia.append(pair[0].queryIdx)
             ib.append(pair[0].trainIdx)
     return np.asarray(ia, int), np.asarray(ib, int)

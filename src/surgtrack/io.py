@@ -100,8 +100,8 @@ def check_depth_units(path: Path, depth: np.ndarray, depth_scale: float) -> None
     if valid.size and np.median(valid) / depth_scale < 10:
         raise SequenceError(
             path,
-            f"median depth is {np.median(valid) / depth_scale:.2f} units, too small for units of "
-            f"{depth_scale} m (depth saved in metres? pass --depth-scale)",
+            f"median depth is {np.median(valid) / depth_scale:.2f} units of {depth_scale} m: depth looks saved in "
+            f"metres; save it as uint16 millimetres (or finer units, with --depth-scale)",
         )
 
 
@@ -148,9 +148,9 @@ class Sequence:
             raise SequenceError(paths["mask"], f"size {mw}x{mh} != depth size {w}x{h}")
         return frame
 
-    def _check_first(self) -> None:
+    def _check_first(self, f0: Frame | None = None) -> None:
         """Up-front validation: the first frame reads, has sane units and a non-empty mask."""
-        f0 = self[0]
+        f0 = self[0] if f0 is None else f0
         if f0.mask is None:
             raise SequenceError(self.mask_path(0), "missing first-frame mask (the first frame needs one)")
         if not f0.mask.any():
@@ -202,7 +202,7 @@ class FolderSequence(Sequence):
         self._numbers = numbers
         f0 = self[0]
         check_depth_units(self._depth[0], f0.depth, depth_scale)
-        self._check_first()
+        self._check_first(f0)
 
     def mask_path(self, i: int) -> Path:
         return self._masks.get(self._numbers[i], self.root / "masks" / f"{self.ids[i]}.png")
@@ -239,6 +239,9 @@ class BopScene(Sequence):
             raise SequenceError(self.root / "scene_camera.json", "no frames listed")
         self.ids = [f"{n:06d}" for n in numbers]
         self._cams = [cams[str(n)] for n in numbers]
+        for n, cam in zip(numbers, self._cams, strict=True):
+            if np.asarray(cam.get("cam_K", []), dtype=np.float64).size != 9:
+                raise SequenceError(self.root / "scene_camera.json", f"frame {n}: cam_K missing or not 3x3")
         self.K = np.asarray(self._cams[0]["cam_K"], dtype=np.float64).reshape(3, 3)
         self._gts = [gts.get(str(n), []) for n in numbers]
         if obj_id is None and self._gts[0]:
@@ -348,7 +351,13 @@ class ApcScene(Sequence):
                 continue
             p, _ = backproject(f.depth, f.K, f.mask)
             pts.append(transform(self._poses[self.ids[i]], p))
-        return np.concatenate(pts) if pts else None
+        if not pts:
+            return None
+        # The toolbox's later masks are noisy segmentations that also cover shelf and neighbours: keep the points
+        # near the first (clean) mask's object.
+        centre = np.median(pts[0], axis=0) if len(pts[0]) else np.median(np.concatenate(pts), axis=0)
+        allp = np.concatenate(pts)
+        return allp[np.linalg.norm(allp - centre, axis=1) < 0.15]
 
 
 def _apc_blocks(text: str) -> dict[str, np.ndarray]:

@@ -1,0 +1,352 @@
+"""Sequence input and result output (DESIGN.md section 2): every bad input is one error naming file and problem."""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import trimesh
+
+import surgtrack.io as sio
+from surgtrack.geometry import make_T, so3_exp
+from surgtrack.io import (
+    BopScene,
+    FolderSequence,
+    ResultWriter,
+    SequenceError,
+    SequenceWriter,
+    open_sequence,
+    read_poses,
+    write_pose,
+)
+
+H, W = 12, 16
+K = np.array([[20.0, 0.0, 8.0], [0.0, 20.0, 6.0], [0.0, 0.0, 1.0]])
+
+
+def pose(t: int) -> np.ndarray:
+    return make_T(so3_exp(np.array([0.1, 0.0, 0.05]) * t), [0.01 * t, 0.0, 0.4])
+
+
+def frame_arrays(i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    rgb = np.full((H, W, 3), 10 * i, np.uint8)
+    depth = np.full((H, W), 0.4 + 0.01 * i)
+    mask = np.zeros((H, W), bool)
+    mask[3:9, 4:12] = True
+    return rgb, depth, mask
+
+
+def make_sequence(root: Path, n: int = 4, masks: str = "first") -> Path:
+    """A valid DESIGN-layout sequence of n synthetic frames; masks 'first', 'all' or 'none'."""
+    w = SequenceWriter(root, K)
+    for i in range(n):
+        rgb, depth, mask = frame_arrays(i)
+        keep = masks == "all" or (masks == "first" and i == 0)
+        w.write_frame(i, rgb, depth, mask if keep else None, pose(i))
+    return root
+
+
+def raises(match_path: Path, problem: str):
+    """Expect a SequenceError whose one-line message names the file and the problem."""
+    return pytest.raises(SequenceError, match=rf"^{re.escape(str(match_path))}: .*{problem}")
+
+
+# ------------------------------------------------------------------------------------------------ valid input
+
+
+def test_sequence_round_trip(tmp_path: Path):
+    seq = open_sequence(make_sequence(tmp_path / "s", masks="all"))
+    assert isinstance(seq, FolderSequence) and len(seq) == 4 and seq.ids == ["000000", "000001", "000002", "000003"]
+    np.testing.assert_allclose(seq.K, K)
+    f = seq[2]
+    rgb, depth, mask = frame_arrays(2)
+    np.testing.assert_array_equal(f.rgb, rgb)
+    np.testing.assert_allclose(f.depth, depth, atol=5e-4)  # millimetre PNG
+    assert f.depth.dtype == np.float32
+    np.testing.assert_array_equal(f.mask, mask)
+    gt = seq.gt_poses()
+    assert list(gt) == seq.ids
+    np.testing.assert_allclose(gt["000003"], pose(3), atol=1e-8)
+    assert seq.gt_model() is None and seq.gt_visible_points() is None
+
+
+def test_optional_masks_and_gt_model(tmp_path: Path):
+    root = make_sequence(tmp_path / "s")
+    box = trimesh.creation.box((0.1, 0.02, 0.02))
+    SequenceWriter(root, K).write_model(box, box.vertices[:5])
+    seq = open_sequence(root)
+    assert seq[0].mask is not None and seq[1].mask is None
+    np.testing.assert_allclose(seq.gt_model().vertices, box.vertices)
+    assert seq.gt_visible_points().shape == (5, 3)
+
+
+def test_depth_scale_option(tmp_path: Path):
+    root = make_sequence(tmp_path / "s")
+    for i in range(4):  # re-save the depth in 0.1 mm units
+        cv2.imwrite(str(root / "depth" / f"{i:06d}.png"), np.full((H, W), 4000 + 100 * i, np.uint16))
+    assert open_sequence(root, depth_scale=1e-4)[1].depth[0, 0] == pytest.approx(0.41)
+    assert open_sequence(root)[1].depth[0, 0] == pytest.approx(4.1)  # millimetres by default
+
+
+def test_reading_is_lazy(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    root = make_sequence(tmp_path / "s", n=5)
+    (root / "rgb" / "000003.png").write_bytes(b"broken")  # opening must not touch frame 3
+    read: list[str] = []
+    original = sio.read_rgb
+
+    def spy(path: Path) -> np.ndarray:
+        read.append(path.name)
+        return original(path)
+
+    monkeypatch.setattr(sio, "read_rgb", spy)
+    seq = open_sequence(root)
+    assert read == ["000000.png"]  # the first frame is validated up front, nothing else
+    seq[4]
+    assert read == ["000000.png", "000004.png"]
+    with raises(root / "rgb" / "000003.png", "unreadable image"):
+        seq[3]
+
+
+# ------------------------------------------------------------------------------------------------ bad input
+
+
+def test_missing_sequence_folder(tmp_path: Path):
+    with raises(tmp_path / "nope", "sequence folder does not exist"):
+        open_sequence(tmp_path / "nope")
+
+
+def test_missing_cam_k(tmp_path: Path):
+    root = make_sequence(tmp_path / "s")
+    (root / "cam_K.txt").unlink()
+    with raises(root / "cam_K.txt", "missing file"):
+        open_sequence(root)
+
+
+@pytest.mark.parametrize(
+    ("text", "problem"),
+    [("1 0 0\n0 1 0\n", "expected a 3x3 matrix, got 2x3"), ("1 0 0 0\n0 1 0 0\n0 0 1 0\n", "got 3x4"),
+     ("a b c\n1 2 3\n4 5 6\n", "not a numeric matrix"), ("1 0 0\n0 nan 0\n0 0 1\n", "NaN")],
+)
+def test_cam_k_not_3x3(tmp_path: Path, text: str, problem: str):
+    root = make_sequence(tmp_path / "s")
+    (root / "cam_K.txt").write_text(text)
+    with raises(root / "cam_K.txt", problem):
+        open_sequence(root)
+
+
+def test_frame_numbering_gap(tmp_path: Path):
+    root = make_sequence(tmp_path / "s", n=5)
+    (root / "rgb" / "000002.png").unlink()
+    with raises(root / "rgb", "frame numbering gap: 000001 is followed by 000003"):
+        open_sequence(root)
+
+
+def test_no_frames(tmp_path: Path):
+    root = tmp_path / "s"
+    SequenceWriter(root, K)
+    with raises(root / "rgb", "no frames"):
+        open_sequence(root)
+
+
+def test_missing_depth_frame(tmp_path: Path):
+    root = make_sequence(tmp_path / "s")
+    (root / "depth" / "000002.png").unlink()
+    with raises(root / "depth" / "000002.png", "missing depth frame"):
+        open_sequence(root)
+
+
+def test_rgb_depth_size_mismatch(tmp_path: Path):
+    root = make_sequence(tmp_path / "s")
+    cv2.imwrite(str(root / "rgb" / "000001.png"), np.zeros((H, W + 4, 3), np.uint8))
+    seq = open_sequence(root)
+    with raises(root / "rgb" / "000001.png", f"size {W + 4}x{H} != depth size {W}x{H}"):
+        seq[1]
+
+
+def test_mask_depth_size_mismatch(tmp_path: Path):
+    root = make_sequence(tmp_path / "s")
+    cv2.imwrite(str(root / "masks" / "000000.png"), np.full((H + 2, W, 1), 255, np.uint8))
+    with raises(root / "masks" / "000000.png", f"size {W}x{H + 2} != depth size {W}x{H}"):
+        open_sequence(root)
+
+
+def test_depth_not_uint16(tmp_path: Path):
+    root = make_sequence(tmp_path / "s")
+    cv2.imwrite(str(root / "depth" / "000000.png"), np.full((H, W), 200, np.uint8))
+    with raises(root / "depth" / "000000.png", "depth must be uint16 \\(got uint8\\)"):
+        open_sequence(root)
+
+
+def test_depth_with_colour_channels(tmp_path: Path):
+    root = make_sequence(tmp_path / "s")
+    cv2.imwrite(str(root / "depth" / "000000.png"), np.full((H, W, 3), 400, np.uint16))
+    with raises(root / "depth" / "000000.png", "single-channel"):
+        open_sequence(root)
+
+
+def test_depth_in_metres_by_mistake(tmp_path: Path):
+    root = make_sequence(tmp_path / "s")
+    cv2.imwrite(str(root / "depth" / "000000.png"), np.ones((H, W), np.uint16))  # 0.4 m rounded to 1 unit
+    with raises(root / "depth" / "000000.png", "median depth is 1.00 units of 0.001 m: depth looks saved in metres"):
+        open_sequence(root)
+    with raises(root / "depth" / "000000.png", "units of 0.0001 m"):
+        open_sequence(root, depth_scale=1e-4)
+
+
+@pytest.mark.parametrize("kind", ["rgb", "depth", "masks"])
+def test_unreadable_png(tmp_path: Path, kind: str):
+    root = make_sequence(tmp_path / "s", masks="all")
+    bad = root / kind / "000001.png"
+    bad.write_bytes(b"\x89PNG\r\n\x1a\n truncated")
+    seq = open_sequence(root)
+    with raises(bad, "unreadable image"):
+        seq[1]
+
+
+def test_empty_first_mask(tmp_path: Path):
+    root = make_sequence(tmp_path / "s")
+    cv2.imwrite(str(root / "masks" / "000000.png"), np.zeros((H, W), np.uint8))
+    with raises(root / "masks" / "000000.png", "first-frame mask is empty"):
+        open_sequence(root)
+
+
+def test_missing_first_mask(tmp_path: Path):
+    root = make_sequence(tmp_path / "s", masks="none")
+    with raises(root / "masks" / "000000.png", "missing first-frame mask"):
+        open_sequence(root)
+
+
+def test_bad_gt_pose(tmp_path: Path):
+    root = make_sequence(tmp_path / "s")
+    (root / "gt" / "ob_in_cam" / "000001.txt").write_text("1 0 0\n0 1 0\n0 0 1\n")
+    seq = open_sequence(root)
+    with raises(root / "gt" / "ob_in_cam" / "000001.txt", "expected a 4x4 matrix, got 3x3"):
+        seq.gt_poses()
+
+
+def test_error_message_is_one_line(tmp_path: Path):
+    root = make_sequence(tmp_path / "s")
+    (root / "cam_K.txt").write_text("x y\n")
+    with pytest.raises(SequenceError) as e:
+        open_sequence(root)
+    assert "\n" not in str(e.value) and e.value.path == root / "cam_K.txt"
+
+
+# ------------------------------------------------------------------------------------------------ results
+
+
+def test_result_writer_keeps_poses_written_before_a_crash(tmp_path: Path):
+    out = tmp_path / "out"
+    script = (
+        "import os, sys, numpy as np\n"
+        "from surgtrack.io import ResultWriter\n"
+        "w = ResultWriter(sys.argv[1])\n"
+        "for i in range(3):\n"
+        "    w.write(f'{i:06d}', np.eye(4) * (i + 1) if i != 1 else None, {'status': 'tracked'})\n"
+        "os._exit(9)  # killed mid-run: no close, no flush at exit\n"
+    )
+    run = subprocess.run([sys.executable, "-c", script, str(out)], capture_output=True, text=True)
+    assert run.returncode == 9, run.stderr
+    poses = read_poses(out / "ob_in_cam")
+    assert list(poses) == ["000000", "000002"]  # frame 1 was lost: logged, no pose file
+    np.testing.assert_allclose(poses["000002"], np.eye(4) * 3)
+    lines = [json.loads(x) for x in (out / "track.jsonl").read_text().splitlines()]
+    assert [x["frame"] for x in lines] == ["000000", "000001", "000002"]
+
+
+def test_result_writer_survives_an_exception(tmp_path: Path):
+    out = tmp_path / "out"
+    with pytest.raises(RuntimeError), ResultWriter(out) as w:
+        for i in range(5):
+            if i == 3:
+                raise RuntimeError("tracker crashed")
+            w.write(f"{i:06d}", pose(i), {"status": "tracked"})
+    assert sorted(read_poses(out / "ob_in_cam")) == ["000000", "000001", "000002"]
+    np.testing.assert_allclose(read_poses(out / "ob_in_cam")["000002"], pose(2), atol=1e-8)
+    assert len((out / "track.jsonl").read_text().splitlines()) == 3
+
+
+def test_pose_writes_are_atomic(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    path = tmp_path / "ob_in_cam" / "000000.txt"
+    write_pose(path, pose(1))
+
+    def crash(src, dst):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(sio.os, "replace", crash)
+    with pytest.raises(OSError):
+        write_pose(path, pose(2))
+    monkeypatch.undo()
+    np.testing.assert_allclose(read_poses(path.parent)["000000"], pose(1), atol=1e-8)  # old pose intact
+    assert list(read_poses(path.parent)) == ["000000"]  # the half-done temporary is never read as a pose
+
+
+def test_result_writer_mesh(tmp_path: Path):
+    box = trimesh.creation.box((0.1, 0.02, 0.02))
+    with ResultWriter(tmp_path / "out") as w:
+        w.write_mesh(box)
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["mesh.ply", "ob_in_cam", "track.jsonl"]
+    np.testing.assert_allclose(sio.load_mesh(tmp_path / "out" / "mesh.ply").vertices, box.vertices, atol=1e-6)
+
+
+# ------------------------------------------------------------------------------------------------ BOP
+
+
+def make_bop(root: Path) -> Path:
+    """A two-frame BOP scene with objects 3 and 5, depth in 0.1 mm units, model of object 5 in millimetres."""
+    scene = root / "test" / "000002"
+    for sub in ("rgb", "depth", "mask_visib"):
+        (scene / sub).mkdir(parents=True)
+    cams, gts = {}, {}
+    for n in (0, 1):
+        rgb, depth, mask = frame_arrays(n)
+        cv2.imwrite(str(scene / "rgb" / f"{n:06d}.png"), rgb)
+        cv2.imwrite(str(scene / "depth" / f"{n:06d}.png"), np.round(depth * 1e4).astype(np.uint16))
+        cv2.imwrite(str(scene / "mask_visib" / f"{n:06d}_000000.png"), np.zeros((H, W), np.uint8))
+        cv2.imwrite(str(scene / "mask_visib" / f"{n:06d}_000001.png"), mask.astype(np.uint8) * 255)
+        cams[str(n)] = {"cam_K": K.ravel().tolist(), "depth_scale": 0.1}
+        T = pose(n)
+        gts[str(n)] = [
+            {"obj_id": 3, "cam_R_m2c": np.eye(3).ravel().tolist(), "cam_t_m2c": [0, 0, 900]},
+            {"obj_id": 5, "cam_R_m2c": T[:3, :3].ravel().tolist(), "cam_t_m2c": (T[:3, 3] * 1000).tolist()},
+        ]
+    (scene / "scene_camera.json").write_text(json.dumps(cams))
+    (scene / "scene_gt.json").write_text(json.dumps(gts))
+    (root / "models").mkdir()
+    trimesh.creation.box((100.0, 20.0, 20.0)).export(root / "models" / "obj_000005.ply")
+    return scene
+
+
+def test_bop_scene(tmp_path: Path):
+    scene = make_bop(tmp_path / "bop")
+    seq = open_sequence(scene, obj_id=5)
+    assert isinstance(seq, BopScene) and seq.ids == ["000000", "000001"]
+    f = seq[1]
+    rgb, depth, mask = frame_arrays(1)
+    np.testing.assert_array_equal(f.rgb, rgb[..., ::-1])  # written with cv2 (BGR), read back as RGB
+    np.testing.assert_allclose(f.depth, depth, atol=1e-4)  # depth_scale 0.1 mm
+    np.testing.assert_array_equal(f.mask, mask)  # slot 1 of scene_gt is object 5
+    np.testing.assert_allclose(seq.gt_poses()["000001"], pose(1), atol=1e-8)  # millimetres to metres
+    np.testing.assert_allclose(seq.gt_model().extents, [0.1, 0.02, 0.02])  # model rescaled to metres
+    # Without --obj-id the first listed object is taken; object 3 has an empty first mask.
+    with raises(scene / "mask_visib" / "000000_000000.png", "first-frame mask is empty"):
+        open_sequence(scene)
+
+
+def test_bop_scene_errors(tmp_path: Path):
+    scene = make_bop(tmp_path / "bop")
+    (scene / "scene_gt.json").write_text("{ not json")
+    with raises(scene / "scene_gt.json", "invalid JSON"):
+        open_sequence(scene, obj_id=5)
+    (scene / "scene_gt.json").unlink()
+    with raises(scene / "mask_visib" / "000000_000000.png", "missing first-frame mask"):
+        open_sequence(scene, obj_id=5)
+    (scene / "scene_camera.json").write_text(json.dumps({"0": {"cam_K": [1, 2, 3]}}))
+    with raises(scene / "scene_camera.json", "frame 0: cam_K missing or not 3x3"):
+        open_sequence(scene, obj_id=5)
