@@ -12,7 +12,7 @@ class PreprocessConfig:
     bilateral_d: int = 5  # bilateral filter diameter, pixels (0 disables)
     bilateral_sigma_depth: float = 0.01  # m
     bilateral_sigma_space: float = 3.0  # pixels
-    mask_erosion: int = 2  # pixels eroded from the instrument mask before lifting points
+    mask_erosion: int = 1  # pixels eroded from the instrument mask before lifting points
     max_grazing_deg: float = 80.0  # drop points whose normal is further than this from the viewing ray
     min_depth: float = 0.1  # m
     max_depth: float = 2.0  # m
@@ -29,6 +29,8 @@ class RansacConfig:
     inlier_dist: float = 0.01  # m
     inlier_normal_deg: float = 20.0
     min_inliers: int = 5
+    min_sample_spread: float = 0.002  # m; a 3-point sample whose triangle height is below this is degenerate
+    refits: int = 2  # Kabsch refits on the inlier set after the best hypothesis
     max_jump_trans: float = 0.15  # m between consecutive frames: beyond is physically implausible
     max_jump_rot_deg: float = 60.0
 
@@ -58,6 +60,8 @@ class GraphConfig:
     assoc_dist: float = 0.02  # m gate of projective association
     assoc_normal_deg: float = 45.0
     adjacent: int = 2  # adjacent (previous) frames always in the graph
+    max_assoc_points: int = 2000  # per node, strided subsample of the valid grid points used by L_2D and L_SDF
+    damping: float = 1e-4  # Levenberg-Marquardt-style damping, relative to the diagonal of the normal equations
 
 
 @dataclass
@@ -74,16 +78,22 @@ class SDFConfig:
     """Instrument SDF Psi (Stage 1, paper eqs. 1-3)."""
 
     enabled: bool = True
-    occ_surf: bool = True  # False: plain TSDF-style fit without L_occ and L_surf (ablation)
+    occ_surf: bool = True  # False: no occlusion handling, every non-instrument ray is free space (ablation)
     voxel_size: float = 0.004  # m
     truncation: float = 0.01  # m, band around the observed depth for V_surf
     delta: float = 0.002  # m, target of Psi on occluded samples (eq. 2)
+    surf_behind: float = 0.003  # m, depth of the V_surf band behind the observed surface; below a shaft's radius
     alpha: float = 1.0  # weight of L_occ
     beta: float = 1.0  # weight of L_surf
     w_free: float = 0.1  # free-space term in front of the surface
     w_eik: float = 0.01  # eikonal |grad Psi| = 1
     iterations: int = 200
-    lr: float = 0.01
+    lr: float = 0.01  # Adam step, in units of the truncation (the grid stores Psi / truncation)
+    occ_dilate: int = 5  # pixels: invalid depth this close to the instrument mask is occluded, not free space
+    batch_rays: int = 4096  # rays of each kind (instrument, other) drawn per Adam step
+    samples_per_ray: int = 8  # samples in the truncation band per instrument ray, along the box per other ray
+    ray_stride: int = 2  # non-instrument pixels are taken on this pixel stride (instrument pixels: all)
+    converged_tol: float = 0.05  # converged: the loss fell by less than this fraction over the last quarter of a fit
 
 
 @dataclass

@@ -33,8 +33,9 @@ class Features:
 class FeatureExtractor:
     """Detect and describe keypoints inside the instrument mask, keep those with trusted depth."""
 
-    def __init__(self, kind: str = "sift", max_keypoints: int = 800):
+    def __init__(self, kind: str = "sift", max_keypoints: int = 800, min_crop: int = 320):
         self.kind = kind
+        self.min_crop = min_crop  # crops whose longer side is below this are enlarged (up to 3x) for detection
         self.max_keypoints = max_keypoints
         if kind == "sift":
             self._cv = cv2.SIFT_create(nfeatures=max_keypoints, contrastThreshold=0.02)
@@ -60,10 +61,15 @@ class FeatureExtractor:
         else:
             gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
             detect_mask = cv2.dilate(obs.mask[rs, cs].astype(np.uint8), np.ones((5, 5), np.uint8))
+            # A small instrument on screen gets few keypoints: detect on an enlarged crop.
+            scale = float(np.clip(self.min_crop / max(gray.shape), 1.0, 3.0))
+            if scale > 1.0:
+                gray = cv2.resize(gray, None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC)
+                detect_mask = cv2.resize(detect_mask, (gray.shape[1], gray.shape[0]), interpolation=cv2.INTER_NEAREST)
             kps, desc = self._cv.detectAndCompute(gray, detect_mask)
             if desc is None or not kps:
                 return _empty(self.norm)
-            uv = np.array([k.pt for k in kps], np.float32)
+            uv = (np.array([k.pt for k in kps], np.float32) + 0.5) / scale - 0.5
         uv = uv + np.array([cs.start, rs.start], np.float32)
         ui = np.clip(np.round(uv[:, 0]).astype(int), 0, obs.valid.shape[1] - 1)
         vi = np.clip(np.round(uv[:, 1]).astype(int), 0, obs.valid.shape[0] - 1)

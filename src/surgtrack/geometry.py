@@ -29,6 +29,14 @@ def inv_T(T: np.ndarray) -> np.ndarray:
     return make_T(R.T, -R.T @ T[:3, 3])
 
 
+def orthonormalize(T: np.ndarray) -> np.ndarray:
+    """The nearest rigid transform (rotation projected onto SO(3) by SVD): stops round-off growing as poses
+    are chained."""
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+    return make_T(R, T[:3, 3])
+
+
 def hat(w: np.ndarray) -> np.ndarray:
     """Skew-symmetric matrix [w]_x of a 3-vector."""
     return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])

@@ -60,12 +60,12 @@ def mask_bbox(mask: np.ndarray, margin: int) -> tuple[slice, slice] | None:
     )
 
 
-def normals_from_xyz(xyz: np.ndarray) -> np.ndarray:
-    """Unit normals from the cross product of central differences, oriented towards the camera."""
+def normals_from_xyz(xyz: np.ndarray, step: int = 2) -> np.ndarray:
+    """Unit normals from the cross product of central differences ``step`` pixels apart, facing the camera."""
     dx = np.zeros_like(xyz)
     dy = np.zeros_like(xyz)
-    dx[:, 1:-1] = xyz[:, 2:] - xyz[:, :-2]
-    dy[1:-1] = xyz[2:] - xyz[:-2]
+    dx[:, step:-step] = xyz[:, 2 * step :] - xyz[:, : -2 * step]
+    dy[step:-step] = xyz[2 * step :] - xyz[: -2 * step]
     n = np.cross(dx, dy)
     norm = np.linalg.norm(n, axis=-1, keepdims=True)
     n = np.divide(n, norm, out=np.zeros_like(n), where=norm > 0)
@@ -100,9 +100,12 @@ def preprocess(frame: Frame, mask: np.ndarray, cfg: PreprocessConfig) -> Observa
         K = frame.K
         p = np.stack([(u - K[0, 2]) * d / K[0, 0], (v - K[1, 2]) * d / K[1, 1], d], axis=-1).astype(np.float32)
         n = normals_from_xyz(p)
-        # A normal is trusted only where both neighbours in each direction have depth close to the centre.
+        # A normal is trusted only where the neighbours it is made from have depth on the same surface.
         dn = np.zeros_like(good)
-        dn[1:-1, 1:-1] = good[1:-1, 1:-1] & good[:-2, 1:-1] & good[2:, 1:-1] & good[1:-1, :-2] & good[1:-1, 2:]
+        dn[2:-2, 2:-2] = good[2:-2, 2:-2] & good[:-4, 2:-2] & good[4:, 2:-2] & good[2:-2, :-4] & good[2:-2, 4:]
+        step_ok = np.zeros_like(good)  # the four neighbours lie on the same surface (no depth jump)
+        step_ok[2:-2, 2:-2] = (np.abs(d[:-4, 2:-2] - d[4:, 2:-2]) < 0.02) & (np.abs(d[2:-2, :-4] - d[2:-2, 4:]) < 0.02)
+        dn &= step_ok
         ray = p / np.maximum(np.linalg.norm(p, axis=-1, keepdims=True), 1e-9)
         cos = -np.sum(ray * n, axis=-1)
         ok = dn & (m > 0) & (cos > np.cos(np.radians(cfg.max_grazing_deg)))

@@ -18,7 +18,7 @@ import numpy as np
 
 from .config import TrackerConfig
 from .features import FeatureExtractor, Features, match
-from .geometry import inv_T, make_T, transform
+from .geometry import inv_T, make_T, orthonormalize, transform
 from .io import Frame
 from .masking import predict_mask
 from .memory_pool import Keyframe, MemoryPool
@@ -121,10 +121,9 @@ class SurgTracker:
         if coarse is None:
             return self._lose(clock)
         pose, edges, inliers = coarse
-        node = self._node(obs, feats, pose)
+        node = self._node(obs, feats, orthonormalize(pose))
         if self.cfg.graph.enabled:
-            pose = self._optimise(node, edges)
-            node.pose = pose
+            pose = node.pose = orthonormalize(self._optimise(node, edges))
         clock.lap("graph")
         confidence = self._confidence(node)
         if confidence < self.cfg.failure.min_confidence:
@@ -174,7 +173,17 @@ class SurgTracker:
             if not self.lost and not plausible(pose @ inv_T(last), self.cfg.ransac):
                 continue
             return pose, [(ref, p_ref, p_cur)], len(p_ref)
-        return None
+        if self.lost or not self.cfg.graph.enabled:
+            return None
+        # Too little texture for features: predict by constant velocity and let the graph's geometry (L_2D) align.
+        return self._predicted_pose(), [], 0
+
+    def _predicted_pose(self) -> np.ndarray:
+        """Constant-velocity prediction from the last two tracked frames."""
+        if len(self.recent) < 2:
+            return self.recent[-1].pose
+        a, b = self.recent[-2].pose, self.recent[-1].pose
+        return b @ inv_T(a) @ b
 
     def _optimise(self, node: _Node, edges: list) -> np.ndarray:
         """Posture graph over the current frame, adjacent frames and K memory frames (eqs. 6-11)."""
@@ -194,8 +203,9 @@ class SurgTracker:
         index = {id(o): i + 1 for i, o in enumerate(others)}
         graph_edges = [FeatureEdge(0, index[id(ref)], p_cur, p_ref) for ref, p_ref, p_cur in edges]
         use_sdf = self.sdf is not None and self.cfg.sdf.enabled
+        pairs = [p for j in range(1, len(nodes)) for p in ((0, j), (j, 0))]  # the other poses are fixed
         poses = optimize_graph(nodes, graph_edges, self.cfg.graph, self.sdf if use_sdf else None,
-                               [0] if use_sdf else [])
+                               [0] if use_sdf else [], pairs_2d=pairs)
         return poses[0]
 
     def _verified_matches(self, kf: Keyframe, node: _Node) -> tuple[np.ndarray, np.ndarray] | None:

@@ -1,0 +1,390 @@
+"""Posture graph optimisation (paper eqs. 7-11): robust Gauss-Newton over the SE(3) poses of the graph's nodes.
+
+The graph G = (V, E) (eq. 7) holds the current frame and frames chosen from the posture memory pool (eq. 6). Its
+poses minimise the energy of eq. 8,
+
+    w_s L_SDF(t) + sum_{i != j} [ w_f L_3D(i, j) + w_p L_2D(i, j) ],
+
+with L_3D the matched-feature distance in the object frame (eq. 9), L_2D the projective point-to-plane distance
+(eq. 10) and L_SDF the signed distance of the current frame's points to the instrument surface (eq. 11), every term
+under the Huber loss rho.
+
+Parametrisation: each node's camera-in-object pose C_i = pose_i^-1 receives a left increment,
+C_i <- exp(delta_i) C_i with delta_i = (rho, phi) and `geometry.se3_exp` (translation rho, rotation exp(phi)); this
+is a right increment exp(-delta_i) of pose_i. Every residual lives in the object frame, where a point y = C_i p moves
+by rho + phi x y, so each Jacobian block is [I, -[y]_x] or a projection of it. The Huber loss is minimised by
+iteratively re-weighted least squares (weight min(1, delta / |r|)); the dense 6n x 6n normal equations, with the
+fixed nodes' rows and columns removed and a small Levenberg-Marquardt damping, are solved each iteration after L_2D
+has been re-associated.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from surgtrack.config import GraphConfig
+from surgtrack.geometry import inv_T, se3_exp
+
+SDFFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
+@dataclass
+class GraphNode:
+    """One frame of the posture graph: pose and its depth at the association resolution."""
+
+    pose: np.ndarray  # 4x4 object-to-camera (x_cam = pose @ x_obj)
+    xyz: np.ndarray  # (h, w, 3) camera-frame points; z = 0 where invalid or outside the instrument
+    normals: np.ndarray  # (h, w, 3) camera-frame unit normals on the same grid
+    K: np.ndarray  # 3x3 intrinsics scaled to that grid
+    fixed: bool = False
+
+
+@dataclass
+class FeatureEdge:
+    """Matched features C_ij between nodes i and j (eq. 9): p_i[k] and p_j[k] are the same surface point."""
+
+    i: int
+    j: int
+    p_i: np.ndarray  # (M, 3) in node i's camera frame
+    p_j: np.ndarray  # (M, 3) in node j's camera frame
+
+
+def huber_weight(r: np.ndarray, delta: float) -> np.ndarray:
+    """IRLS weight of the Huber loss rho: 1 inside |r| <= delta, delta / |r| outside."""
+    return delta / np.maximum(np.abs(r), delta)
+
+
+def _cross(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+    """Cross product of component-major (G, 3, m) arrays along axis 1, written to ``out`` (G, 3, m)."""
+    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+
+
+def _inv_batch(T: np.ndarray) -> np.ndarray:
+    """Inverses of rigid (n, 4, 4) transforms."""
+    out = np.zeros_like(T)
+    Rt = T[:, :3, :3].transpose(0, 2, 1)
+    out[:, :3, :3] = Rt
+    out[:, :3, 3] = -np.einsum("nij,nj->ni", Rt, T[:, :3, 3])
+    out[:, 3, 3] = 1.0
+    return out
+
+
+class _Normal:
+    """Block normal equations (sum w J^T J) delta = -(sum w J^T r) of one re-weighted Gauss-Newton step.
+
+    Residual groups are component-major: Jacobians (G, 6, m), residuals and weights (G, m), node ids (G,).
+    """
+
+    def __init__(self, n: int) -> None:
+        self.H = np.zeros((n, n, 6, 6))
+        self.g = np.zeros((n, 6))
+
+    def add(
+        self,
+        a: np.ndarray,
+        Ja: np.ndarray,
+        r: np.ndarray,
+        w: np.ndarray,
+        b: np.ndarray | None = None,
+        Jb: np.ndarray | None = None,
+    ) -> None:
+        """Residuals on node a (Jacobian Ja) and, when given, node b (Jacobian Jb)."""
+        wJa = Ja * w[:, None, :]
+        np.add.at(self.H, (a, a), np.matmul(wJa, Ja.transpose(0, 2, 1)))
+        np.add.at(self.g, a, np.matmul(wJa, r[..., None])[..., 0])
+        if b is None or Jb is None:
+            return
+        wJb = Jb * w[:, None, :]
+        Hab = np.matmul(wJa, Jb.transpose(0, 2, 1))
+        np.add.at(self.H, (a, b), Hab)
+        np.add.at(self.H, (b, a), Hab.transpose(0, 2, 1))
+        np.add.at(self.H, (b, b), np.matmul(wJb, Jb.transpose(0, 2, 1)))
+        np.add.at(self.g, b, np.matmul(wJb, r[..., None])[..., 0])
+
+    def add_opposed(self, a: np.ndarray, b: np.ndarray, A: np.ndarray, gv: np.ndarray) -> None:
+        """Groups with Jacobian J on node b and -J on node a, given A = J^T W J (G, 6, 6) and gv = J^T W r (G, 6)."""
+        np.add.at(self.H, (a, a), A)
+        np.add.at(self.H, (b, b), A)
+        np.add.at(self.H, (a, b), -A)
+        np.add.at(self.H, (b, a), -A)
+        np.add.at(self.g, a, -gv)
+        np.add.at(self.g, b, gv)
+
+    def solve(self, free: np.ndarray, damping: float) -> np.ndarray:
+        """Damped step delta (n, 6); fixed nodes get zero."""
+        n = len(self.g)
+        H = self.H.transpose(0, 2, 1, 3).reshape(6 * n, 6 * n)
+        sel = np.repeat(free, 6)
+        Hf = H[np.ix_(sel, sel)]
+        gf = self.g.reshape(-1)[sel]
+        d = np.diag(Hf).copy()
+        Hf[np.diag_indices_from(Hf)] += damping * d + 1e-12 * max(float(d.max(initial=0.0)), 1.0)
+        try:
+            step = np.linalg.solve(Hf, -gf)
+        except np.linalg.LinAlgError:
+            step = np.linalg.lstsq(Hf, -gf, rcond=None)[0]
+        delta = np.zeros(6 * n)
+        delta[sel] = step
+        return delta.reshape(n, 6)
+
+
+def _valid_points(nd: GraphNode) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Flat pixel indices, points (N, 3) and unit normals (N, 3) of a node's valid grid pixels."""
+    xyz = np.asarray(nd.xyz).reshape(-1, 3)
+    idx = np.flatnonzero(xyz[:, 2] > 0)
+    p = xyz[idx].astype(np.float64)
+    q = np.asarray(nd.normals).reshape(-1, 3)[idx].astype(np.float64)
+    qn = np.linalg.norm(q, axis=1)
+    ok = np.isfinite(p).all(1) & np.isfinite(qn) & (qn > 0.5)
+    return idx[ok], p[ok], q[ok] / qn[ok, None]
+
+
+class _NodeData:
+    """Per-node point samples (sources of L_2D and L_SDF) and a pixel lookup of every valid point (targets of L_2D).
+
+    Samples are strided down to at most ``cap`` per node and padded to a common length m: homogeneous points
+    ``ph`` (n, 4, m), unit normals ``nrm`` (n, 3, m), mask ``mask`` (n, m), all in each node's camera frame. Targets:
+    ``lut`` maps node k's pixel (v, u) at ``base[k] + v * w[k] + u`` to a column of ``tx`` / ``tn`` (3, 1 + N); column
+    0 is an empty target with z = 0.
+    """
+
+    def __init__(self, nodes: Sequence[GraphNode], cap: int) -> None:
+        valid = [_valid_points(nd) for nd in nodes]
+        self.h = np.array([nd.xyz.shape[0] for nd in nodes])
+        self.w = np.array([nd.xyz.shape[1] for nd in nodes])
+        sizes = self.h * self.w
+        self.base = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+        counts = np.array([len(p) for _, p, _ in valid])
+        first = 1 + np.concatenate([[0], np.cumsum(counts)[:-1]])
+        self.lut = np.zeros(int(sizes.sum()), dtype=np.int64)
+        self.tx = np.zeros((3, 1 + int(counts.sum())))
+        self.tn = np.zeros_like(self.tx)
+        picks = []
+        for k, (idx, p, q) in enumerate(valid):
+            self.lut[self.base[k] + idx] = first[k] + np.arange(len(idx))
+            self.tx[:, first[k] : first[k] + len(idx)] = p.T
+            self.tn[:, first[k] : first[k] + len(idx)] = q.T
+            step = int(np.ceil(len(p) / cap)) if 0 < cap < len(p) else 1
+            picks.append((p[::step], q[::step]))
+        m = max(1, max(len(p) for p, _ in picks))
+        self.ph = np.zeros((len(nodes), 4, m))
+        self.ph[:, 3] = 1.0
+        self.nrm = np.zeros((len(nodes), 3, m))
+        self.mask = np.zeros((len(nodes), m), dtype=bool)
+        for k, (p, q) in enumerate(picks):
+            self.ph[k, :3, : len(p)] = p.T
+            self.nrm[k, :, : len(p)] = q.T
+            self.mask[k, : len(p)] = True
+
+
+class _Projective:
+    """L_2D (eq. 10) by projective association, for directed node pairs (i, j) = (pa[k], pb[k]).
+
+    The residual n_i(p) . (T_ij^-1 x_j - p) is evaluated in camera j as n . (x_j - q), q = T_ij p, n the source
+    normal rotated into camera j. In the object frame its Jacobian is [n_o, y_j x n_o] on delta_j and the negative on
+    delta_i; it is formed in camera j as J = [n, x_j x n] and mapped by Ad = [[R, 0], [[t]_x R, R]] of C_j = (R, t).
+    The per-pixel work runs in float32 (sub-micrometre rounding at camera distances); the 6 x 6 blocks are float64.
+    """
+
+    def __init__(self, data: _NodeData, nodes: Sequence[GraphNode], pairs: Sequence[tuple[int, int]], cfg: GraphConfig):
+        f32 = np.float32
+        self.pa = np.array([p[0] for p in pairs], dtype=int)
+        self.pb = np.array([p[1] for p in pairs], dtype=int)
+        pb = self.pb
+        Ks = np.stack([np.asarray(nd.K, dtype=np.float64) for nd in nodes])[pb]
+        self.fx, self.fy = Ks[:, 0, 0, None].astype(f32), Ks[:, 1, 1, None].astype(f32)
+        self.cx, self.cy = (Ks[:, 0, 2, None] + 0.5).astype(f32), (Ks[:, 1, 2, None] + 0.5).astype(f32)
+        self.hb, self.wb = data.h[pb][:, None], data.w[pb][:, None]
+        self.base = data.base[pb][:, None]
+        self.lut = data.lut
+        self.tx, self.tn = data.tx.astype(f32), data.tn.astype(f32)
+        self.ph_a = data.ph[self.pa].astype(f32)
+        self.nrm_a = data.nrm[self.pa].astype(f32)
+        self.smask = data.mask[self.pa]
+        self.d2max = float(cfg.assoc_dist) ** 2
+        self.cos = float(np.cos(np.radians(cfg.assoc_normal_deg)))
+        self.delta, self.weight = float(cfg.huber_delta), float(cfg.w_p)
+        self.B = np.empty((len(pairs), 6, data.ph.shape[2]), dtype=f32)
+        self.Ad = np.zeros((len(pairs), 6, 6))
+
+    def add_to(self, ne: _Normal, C: np.ndarray) -> None:
+        """Associate with the current camera-in-object poses C (n, 4, 4) and add the re-weighted normal equations."""
+        pa, pb = self.pa, self.pb
+        Tba = np.matmul(_inv_batch(C[pb]), C[pa]).astype(np.float32)
+        Q = np.matmul(Tba[:, :3, :], self.ph_a)
+        Nq = np.matmul(Tba[:, :3, :3], self.nrm_a)
+        z = Q[:, 2]
+        front = self.smask & (z > 1e-6)
+        iz = 1.0 / np.where(front, z, np.float32(1.0))
+        uf = Q[:, 0] * iz
+        uf *= self.fx
+        uf += self.cx
+        vf = Q[:, 1] * iz
+        vf *= self.fy
+        vf += self.cy
+        ok = front & (uf >= 0) & (uf < self.wb) & (vf >= 0) & (vf < self.hb)
+        li = self.lut[np.where(ok, vf.astype(np.int64) * self.wb + uf.astype(np.int64) + self.base, 0)]
+        ok &= li > 0
+        X = np.take(self.tx, li, axis=1)
+        Nt = np.take(self.tn, li, axis=1)
+        D = X - Q.transpose(1, 0, 2)
+        NqT = Nq.transpose(1, 0, 2)
+        ok &= np.einsum("kpm,kpm->pm", D, D) < self.d2max
+        ok &= np.einsum("kpm,kpm->pm", NqT, Nt) > self.cos
+        r = np.where(ok, np.einsum("kpm,kpm->pm", NqT, D), np.float32(0.0))
+        sw = np.sqrt(self.weight * huber_weight(r, self.delta) * ok).astype(np.float32)
+        B = self.B
+        for k in range(3):
+            np.multiply(Nq[:, k], sw, out=B[:, k])
+        x0, x1, x2 = X[0], X[1], X[2]
+        n0, n1, n2 = Nq[:, 0], Nq[:, 1], Nq[:, 2]
+        np.multiply(x1 * n2 - x2 * n1, sw, out=B[:, 3])
+        np.multiply(x2 * n0 - x0 * n2, sw, out=B[:, 4])
+        np.multiply(x0 * n1 - x1 * n0, sw, out=B[:, 5])
+        A = np.matmul(B, B.transpose(0, 2, 1)).astype(np.float64)
+        gv = np.matmul(B, (sw * r)[..., None])[..., 0].astype(np.float64)
+        Rb, tb = C[pb, :3, :3], C[pb, :3, 3]
+        Ad = self.Ad
+        Ad[:, :3, :3] = Rb
+        Ad[:, 3:, 3:] = Rb
+        Ad[:, 3:, :3] = np.cross(tb[:, :, None], Rb, axis=1)
+        ne.add_opposed(pa, pb, np.matmul(np.matmul(Ad, A), Ad.transpose(0, 2, 1)), np.matmul(Ad, gv[..., None])[..., 0])
+
+
+def _pad_edges(edges: Sequence[FeatureEdge]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Feature edges as node ids (E,) x 2, homogeneous matches (E, 4, M) x 2, zero-padded, and their mask (E, M)."""
+    M = max(1, max(len(e.p_i) for e in edges))
+    E = len(edges)
+    pi, pj = np.zeros((E, 4, M)), np.zeros((E, 4, M))
+    pi[:, 3] = pj[:, 3] = 1.0
+    mask = np.zeros((E, M), dtype=bool)
+    for k, e in enumerate(edges):
+        a = np.asarray(e.p_i, dtype=np.float64).reshape(-1, 3)
+        b = np.asarray(e.p_j, dtype=np.float64).reshape(-1, 3)
+        if len(a) != len(b):
+            raise ValueError(f"edge ({e.i}, {e.j}): p_i and p_j differ in length")
+        ok = np.isfinite(a).all(1) & np.isfinite(b).all(1)
+        pi[k, :3, : len(a)] = np.where(ok[:, None], a, 0.0).T
+        pj[k, :3, : len(b)] = np.where(ok[:, None], b, 0.0).T
+        mask[k, : len(a)] = ok
+    ia = np.array([e.i for e in edges], dtype=int)
+    ib = np.array([e.j for e in edges], dtype=int)
+    return ia, ib, pi, pj, mask
+
+
+def _hat_rows(y: np.ndarray, sign: float) -> np.ndarray:
+    """Rows of sign * [y]_x for component-major y (E, 3, M), stacked as (E, 3, 3, M): [row k, column c, match]."""
+    z = np.zeros_like(y[:, 0])
+    y0, y1, y2 = sign * y[:, 0], sign * y[:, 1], sign * y[:, 2]
+    return np.stack([np.stack([z, -y2, y1], 1), np.stack([y2, z, -y0], 1), np.stack([-y1, y0, z], 1)], 1)
+
+
+def default_pairs(n: int, edges: Sequence[FeatureEdge]) -> list[tuple[int, int]]:
+    """Directed node pairs for L_2D: both directions of every pair sharing a feature edge, or all i != j if none."""
+    if not edges:
+        return [(i, j) for i in range(n) for j in range(n) if i != j]
+    out: set[tuple[int, int]] = set()
+    for e in edges:
+        if e.i != e.j:
+            out.update({(e.i, e.j), (e.j, e.i)})
+    return sorted(out)
+
+
+def optimize_graph(
+    nodes: list[GraphNode],
+    edges: list[FeatureEdge],
+    cfg: GraphConfig,
+    sdf: SDFFn | None = None,
+    sdf_nodes: Sequence[int] = (),
+    pairs_2d: Sequence[tuple[int, int]] | None = None,
+) -> list[np.ndarray]:
+    """Optimised 4x4 object-to-camera poses of ``nodes`` minimising the energy of eq. 8; fixed nodes are returned
+    unchanged.
+
+    - L_3D (eq. 9): rho(||pose_i^-1 p_i - pose_j^-1 p_j||) over every edge's matches, weight ``cfg.w_f``.
+    - L_2D (eq. 10): for each directed pair (i, j) in ``pairs_2d`` (default `default_pairs`), node i's valid grid
+      points p (at most ``cfg.max_assoc_points``) are mapped into camera j by T_ij = pose_j pose_i^-1, projected with
+      K_j and associated with node j's point x_j at that pixel, gated by ``cfg.assoc_dist`` and
+      ``cfg.assoc_normal_deg``; residual n_i(p) . (T_ij^-1 x_j - p), weight ``cfg.w_p``. Associations are recomputed
+      every iteration.
+    - L_SDF (eq. 11): with ``sdf`` given, ``sdf(points_obj (N, 3)) -> (psi (N,), grad (N, 3))`` is evaluated at
+      pose_t^-1 p for the points p of every node t in ``sdf_nodes``; residual psi, weight ``cfg.w_s``.
+
+    Every residual goes through the Huber loss with ``cfg.huber_delta``; ``cfg.iterations`` re-weighted Gauss-Newton
+    steps are taken (parametrisation in the module docstring). Without a fixed node the gauge is held only by the
+    damping, so the tracker should fix one node.
+    """
+    n = len(nodes)
+    poses = [np.asarray(nd.pose, dtype=np.float64).copy() for nd in nodes]
+    free = np.array([not nd.fixed for nd in nodes], dtype=bool)
+    if n == 0 or not free.any():
+        return poses
+    C = _inv_batch(np.stack(poses))
+    hd = float(cfg.huber_delta)
+
+    pairs = default_pairs(n, edges) if pairs_2d is None else list(pairs_2d)
+    pairs = [(i, j) for i, j in pairs if i != j and (free[i] or free[j])]
+    edges = [e for e in edges if e.i != e.j and (free[e.i] or free[e.j]) and len(e.p_i) > 0]
+    use_3d = bool(edges) and cfg.w_f > 0
+    if use_3d:
+        ea, eb, epi, epj, emask = _pad_edges(edges)
+        eye = np.zeros((len(edges), 3, 3, emask.shape[1]))
+        for k in range(3):
+            eye[:, k, k] = 1.0
+    use_2d = bool(pairs) and cfg.w_p > 0
+    sdf_ids = np.array(sorted({int(s) for s in sdf_nodes if free[int(s)]}), dtype=int)
+    use_sdf = sdf is not None and len(sdf_ids) > 0 and cfg.w_s > 0
+
+    if use_2d or use_sdf:
+        nd_data = _NodeData(nodes, cfg.max_assoc_points)
+        ph, pmask = nd_data.ph, nd_data.mask
+    if use_2d:
+        proj = _Projective(nd_data, nodes, pairs, cfg)
+
+    for _ in range(cfg.iterations):
+        ne = _Normal(n)
+
+        if use_3d:
+            # eq. 9: r = C_i p_i - C_j p_j; d r / d delta_i = [I, -[y_i]_x], d r / d delta_j = -[I, -[y_j]_x].
+            ya = np.matmul(C[ea, :3, :], epi)
+            yb = np.matmul(C[eb, :3, :], epj)
+            r3 = ya - yb
+            w = cfg.w_f * huber_weight(np.sqrt((r3 * r3).sum(1)), hd) * emask
+            E, M = w.shape
+            Ja = np.concatenate([eye, _hat_rows(ya, -1.0)], axis=2).transpose(0, 2, 1, 3).reshape(E, 6, 3 * M)
+            Jb = np.concatenate([-eye, _hat_rows(yb, 1.0)], axis=2).transpose(0, 2, 1, 3).reshape(E, 6, 3 * M)
+            ne.add(ea, Ja, r3.reshape(E, 3 * M), np.tile(w, (1, 3)), eb, Jb)
+
+        if use_2d:
+            proj.add_to(ne, C)
+
+        if use_sdf:
+            # eq. 11: r = psi(C_t p); d r / d delta_t = [grad, y x grad].
+            ys, ms = np.matmul(C[sdf_ids, :3, :], ph[sdf_ids]), pmask[sdf_ids]
+            psi, grad = sdf(ys.transpose(0, 2, 1)[ms])
+            r = np.zeros(ms.shape)
+            gr = np.zeros(ms.shape + (3,))
+            r[ms] = np.asarray(psi, dtype=np.float64).reshape(-1)
+            gr[ms] = np.asarray(grad, dtype=np.float64).reshape(-1, 3)
+            good = ms & np.isfinite(r) & np.isfinite(gr).all(-1)
+            r = np.where(good, r, 0.0)
+            gr = np.where(good[..., None], gr, 0.0).transpose(0, 2, 1)
+            Js = np.empty((len(sdf_ids), 6, ms.shape[1]))
+            Js[:, :3] = gr
+            _cross(ys, gr, Js[:, 3:])
+            ne.add(sdf_ids, Js, r, cfg.w_s * huber_weight(r, hd) * good)
+
+        step = ne.solve(free, cfg.damping)
+        if not np.all(np.isfinite(step)):
+            break
+        for k in np.flatnonzero(free):
+            C[k] = se3_exp(step[k]) @ C[k]
+        if np.abs(step).max() < 1e-10:
+            break
+
+    return [poses[k] if not free[k] else inv_T(C[k]) for k in range(n)]
