@@ -69,7 +69,7 @@ class FailureConfig:
     """Lost-instrument detection (Stage 2, step 5)."""
 
     min_pixels: int = 150  # fewer instrument pixels with valid depth: lost
-    min_inliers: int = 8  # fewer RANSAC inliers on every pair: lost
+    relocalise_window: int = 15  # frames after a loss in which re-acquisition from the last pose is also tried
     min_confidence: float = 0.25
 
 

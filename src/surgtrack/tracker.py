@@ -85,6 +85,7 @@ class SurgTracker:
         self.rng = np.random.default_rng(self.cfg.seed)
         self.recent: deque[_Node] = deque(maxlen=max(self.cfg.graph.adjacent, 1))
         self.lost = False
+        self.frames_lost = 0
         self.sdf = None  # callable points_obj -> (psi, grad) once the instrument SDF has converged
         self._model_points: np.ndarray | None = None
 
@@ -130,6 +131,7 @@ class SurgTracker:
             return self._lose(clock, confidence)
         status = RELOCALISED if self.lost else TRACKED
         self.lost = False
+        self.frames_lost = 0
         self.recent.append(node)
         if self.cfg.pool.enabled and self.pool.should_add(pose):
             self._add_keyframe(node, obs)
@@ -149,7 +151,7 @@ class SurgTracker:
             return None
         src, dst = ref.features.subset(ia), feats.subset(ib)
         res = ransac_pose(src.xyz, dst.xyz, self.cfg.ransac, self.rng, src.normals, dst.normals)
-        if res.T is None or res.n_inliers < self.cfg.failure.min_inliers:
+        if res.T is None:
             return None
         return res.T, src.xyz[res.inliers], dst.xyz[res.inliers]
 
@@ -173,14 +175,17 @@ class SurgTracker:
             if not self.lost and not plausible(pose @ inv_T(last), self.cfg.ransac):
                 continue
             return pose, [(ref, p_ref, p_cur)], len(p_ref)
-        if self.lost or not self.cfg.graph.enabled:
+        if not self.cfg.graph.enabled or self.frames_lost > self.cfg.failure.relocalise_window:
             return None
-        # Too little texture for features: predict by constant velocity and let the graph's geometry (L_2D) align.
-        return self._predicted_pose(), [], 0
+        # Too little texture for features: predict (constant velocity, or the last pose after a loss) and let the
+        # graph's geometry (L_2D) and the matches that agree with the prediction align it.
+        pose = self._predicted_pose()
+        pair = self._verified_matches(self.recent[-1], pose, feats)
+        return pose, [] if pair is None else [(self.recent[-1], *pair)], 0
 
     def _predicted_pose(self) -> np.ndarray:
         """Constant-velocity prediction from the last two tracked frames."""
-        if len(self.recent) < 2:
+        if len(self.recent) < 2 or self.lost:
             return self.recent[-1].pose
         a, b = self.recent[-2].pose, self.recent[-1].pose
         return b @ inv_T(a) @ b
@@ -194,7 +199,7 @@ class SurgTracker:
         if self.cfg.pool.enabled:
             seen = {o.frame_id for o in others}
             for kf in self.pool.select(node.pose, self.cfg.pool.K, exclude=seen):
-                pair = self._verified_matches(kf, node)
+                pair = self._verified_matches(kf, node.pose, node.features)
                 others.append(kf)
                 if pair is not None:
                     edges.append((kf, *pair))
@@ -208,25 +213,30 @@ class SurgTracker:
                                [0] if use_sdf else [], pairs_2d=pairs)
         return poses[0]
 
-    def _verified_matches(self, kf: Keyframe, node: _Node) -> tuple[np.ndarray, np.ndarray] | None:
-        """Matches with a memory frame that agree with the coarse pose (within twice the RANSAC threshold)."""
-        ia, ib = match(kf.features, node.features, self.extractor.norm, self.cfg.ransac.ratio_test)
+    def _verified_matches(self, ref: _Node | Keyframe, pose: np.ndarray,
+                          feats: Features) -> tuple[np.ndarray, np.ndarray] | None:
+        """Matches with a reference frame that agree with a pose estimate (within twice the RANSAC threshold)."""
+        ia, ib = match(ref.features, feats, self.extractor.norm, self.cfg.ransac.ratio_test)
         if len(ia) == 0:
             return None
-        p_kf, p_cur = kf.features.xyz[ia], node.features.xyz[ib]
-        pred = transform(node.pose @ inv_T(kf.pose), p_kf)
+        p_kf, p_cur = ref.features.xyz[ia], feats.xyz[ib]
+        pred = transform(pose @ inv_T(ref.pose), p_kf)
         ok = np.linalg.norm(pred - p_cur, axis=1) < 2 * self.cfg.ransac.inlier_dist
         if ok.sum() < self.cfg.ransac.min_inliers:
             return None
         return p_kf[ok], p_cur[ok]
 
     def _confidence(self, node: _Node) -> float:
-        """Fraction of the frame's points that land within assoc_dist of the previous frame's surface."""
-        ref = self.recent[-1]
+        """Fraction of the frame's points that land within assoc_dist of a reference frame's surface: the last
+        tracked frame or the nearest keyframes, whichever sees the most of them."""
         pts = node.xyz[node.xyz[..., 2] > 0]
         if len(pts) == 0:
             return 0.0
-        q = transform(ref.pose @ inv_T(node.pose), pts)
+        refs = [self.recent[-1], *self.pool.select(node.pose, 2)]
+        return max(self._overlap(node.pose, pts, ref) for ref in refs)
+
+    def _overlap(self, pose: np.ndarray, pts: np.ndarray, ref: _Node | Keyframe) -> float:
+        q = transform(ref.pose @ inv_T(pose), pts)
         h, w = ref.xyz.shape[:2]
         K = ref.K_grid
         z = np.maximum(q[:, 2], 1e-6)
@@ -255,6 +265,7 @@ class SurgTracker:
 
     def _lose(self, clock: _Clock, confidence: float = 0.0) -> TrackResult:
         self.lost = True
+        self.frames_lost += 1
         clock.lap("pool")
         return TrackResult(None, LOST, confidence, clock.laps)
 
