@@ -56,7 +56,7 @@ class GraphConfig:
     w_s: float = 1.0  # weight of L_SDF, once the field has converged
     huber_delta: float = 0.005  # m
     iterations: int = 7
-    depth_downscale: int = 4  # projective association on depth downscaled by this factor
+    depth_downscale: int = 4  # projective association on depth downscaled by this factor (at 640 px width)
     assoc_dist: float = 0.02  # m gate of projective association
     assoc_normal_deg: float = 45.0
     adjacent: int = 2  # adjacent (previous) frames always in the graph

@@ -18,7 +18,7 @@ import numpy as np
 
 from .config import TrackerConfig
 from .features import FeatureExtractor, Features, match
-from .geometry import inv_T, make_T, orthonormalize, transform
+from .geometry import backproject, inv_T, make_T, orthonormalize, transform
 from .io import Frame
 from .masking import predict_mask
 from .memory_pool import Keyframe, MemoryPool
@@ -99,7 +99,7 @@ class SurgTracker:
                 f"frame {frame.id}: only {obs.n_valid} instrument pixels with valid depth in the first mask "
                 f"(need {self.cfg.failure.min_pixels})"
             )
-        pts, _ = obs.points()
+        pts, _ = backproject(frame.depth, frame.K, mask)  # the whole masked cloud, not the filtered subset
         pose = make_T(np.eye(3), object_origin(pts))
         node = self._node(obs, self.extractor(obs), pose)
         self.recent.append(node)
@@ -141,7 +141,8 @@ class SurgTracker:
     # -------------------------------------------------------------------------------------------------- stages
 
     def _node(self, obs: Observation, feats: Features, pose: np.ndarray) -> _Node:
-        xyz, nrm, K = obs.grid(self.cfg.graph.depth_downscale)
+        factor = max(1, round(self.cfg.graph.depth_downscale * obs.depth.shape[1] / 640))
+        xyz, nrm, K = obs.grid(factor)
         return _Node(obs.frame.id, pose, feats, xyz, nrm, K)
 
     def _pair(self, ref: _Node | Keyframe, feats: Features) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
@@ -245,7 +246,7 @@ class SurgTracker:
         inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
         target = ref.xyz[v[inside], u[inside]]
         seen = target[:, 2] > 0
-        if seen.sum() < 10:
+        if seen.sum() < 5:
             return 0.0
         close = np.linalg.norm(q[inside][seen] - target[seen], axis=1) < self.cfg.graph.assoc_dist
         return float(close.mean())
