@@ -185,6 +185,54 @@ def track(
     with Progress(*columns, transient=True) as progress:
         task = progress.add_task("track", total=len(sequence), status="")
         summary = track_sequence(sequence, out, cfg, first_mask_only,
-                                 on_frame=lambda i, r: progress.update(task, completed=i + 1, status=r.status))
+                                 on_frame=lambda f, r: progress.update(task, completed=f.index + 1, status=r.status))
     stages = ", ".join(f"{k} {v:.1f}" for k, v in summary.stage_ms.items())
     typer.echo(f"{summary.frames} frames, {summary.lost} lost, {summary.fps:.1f} frames/s ({stages} ms) -> {out}")
+
+
+@app.command()
+def bench(
+    suite: Annotated[str, typer.Option(help="instrument3d | ho3d")] = "instrument3d",
+    methods: Annotated[str, typer.Option(help="comma-separated: surgtrack, no-memory-pool, no-graph, no-occ-surf, "
+                                              "orb, xfeat")] = "surgtrack,no-memory-pool,no-graph",
+    out: Annotated[Path, typer.Option("--out", "-o", help="working folder")] = Path("runs/bench"),
+    short: Annotated[bool, typer.Option(help="40-frame 320x240 variants")] = False,
+    frames: Annotated[int | None, typer.Option(help="cut every sequence to this many frames")] = None,
+    first_mask_only: Annotated[bool, typer.Option(help="give the trackers the first mask only")] = False,
+) -> None:
+    """Run methods over a synthetic suite, evaluate, and print the paper-style table (writes bench.json/.md)."""
+    from .bench import METHODS, format_table, run_bench
+
+    names = [m.strip() for m in methods.split(",") if m.strip()]
+    for m in names:
+        if m not in METHODS:
+            fail(f"unknown method {m!r}; choose from {', '.join(METHODS)}")
+    results = run_bench(suite, names, out, short, frames, first_mask_only, log=typer.echo)
+    typer.echo(format_table(results))
+
+
+@app.command()
+def demo(
+    out: Annotated[Path, typer.Option("--out", "-o", help="report folder")] = Path("demo_out"),
+    frames: Annotated[int, typer.Option(help="length of the synthetic video")] = 120,
+    per_frame_masks: Annotated[bool, typer.Option(help="give the tracker every frame's mask")] = False,
+) -> None:
+    """Synthesise an instrument video, track it from the first-frame mask, evaluate, write OUT/report.md."""
+    from dataclasses import replace
+
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+
+    from .demo import DEMO_SPEC, run_demo
+
+    with Progress(TextColumn("{task.description:>8}"), BarColumn(), MofNCompleteColumn()) as progress:
+        tasks: dict[str, int] = {}
+
+        def update(stage: str, i: int, n: int) -> None:
+            if stage not in tasks:
+                tasks[stage] = progress.add_task(stage, total=n)
+            progress.update(tasks[stage], completed=i)
+
+        result = run_demo(out, replace(DEMO_SPEC, frames=frames), not per_frame_masks, update)
+    m, s = result["metrics"], result["summary"]
+    typer.echo(f"ADD-S AUC {m['add_s_auc']:.2f} %, ADD AUC {m['add_auc']:.2f} %, lost {s['lost']}/{s['frames']}, "
+               f"{s['fps']:.1f} frames/s -> {result['report']}")

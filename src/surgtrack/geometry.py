@@ -116,3 +116,12 @@ def project(p: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     u = K[0, 0] * p[:, 0] / zs + K[0, 2]
     v = K[1, 1] * p[:, 1] / zs + K[1, 2]
     return np.stack([u, v], axis=1), z
+
+
+def voxel_downsample(p: np.ndarray, voxel: float) -> np.ndarray:
+    """One point (the first) per occupied voxel of edge ``voxel``."""
+    if len(p) == 0:
+        return p
+    keys = np.floor(p / voxel).astype(np.int64)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    return p[np.sort(first)]

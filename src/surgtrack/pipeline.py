@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from .config import TrackerConfig
-from .io import ResultWriter, Sequence, SequenceError
+from .io import Frame, ResultWriter, Sequence, SequenceError
 from .tracker import LOST, SurgTracker, TrackResult
 
 
@@ -38,7 +38,7 @@ def track_sequence(
     out: Path | str,
     config: TrackerConfig | None = None,
     first_mask_only: bool = False,
-    on_frame: Callable[[int, TrackResult], None] | None = None,
+    on_frame: Callable[[Frame, TrackResult], None] | None = None,
     tracker: SurgTracker | None = None,
 ) -> RunSummary:
     """Track every frame of ``seq`` and write OUT/ob_in_cam/, OUT/track.jsonl, OUT/config.json (and OUT/mesh.ply
@@ -59,6 +59,8 @@ def track_sequence(
             raise SequenceError(seq.root, str(e)) from None
         writer.write(first.id, pose, {"status": "tracked", "confidence": 1.0, "ms": {}})
         summary.frames = 1
+        if on_frame is not None:
+            on_frame(first, TrackResult(pose, "tracked", 1.0))
         for i in range(1, len(seq)):
             frame = seq[i]
             result = tracker.track(frame, None if first_mask_only else frame.mask)
@@ -71,7 +73,7 @@ def track_sequence(
             summary.lost += result.status == LOST
             summary.relocalised += result.status == "relocalised"
             if on_frame is not None:
-                on_frame(i, result)
+                on_frame(frame, result)
         summary.seconds = time.perf_counter() - t0
         n = max(summary.frames - 1, 1)
         summary.stage_ms = {k: v * 1e3 / n for k, v in stage_total.items()}

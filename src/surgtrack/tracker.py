@@ -18,7 +18,7 @@ import numpy as np
 
 from .config import TrackerConfig
 from .features import FeatureExtractor, Features, match
-from .geometry import backproject, inv_T, make_T, orthonormalize, transform
+from .geometry import backproject, inv_T, make_T, orthonormalize, transform, voxel_downsample
 from .io import Frame
 from .masking import predict_mask
 from .memory_pool import Keyframe, MemoryPool
@@ -87,7 +87,7 @@ class SurgTracker:
         self.lost = False
         self.frames_lost = 0
         self.sdf = None  # callable points_obj -> (psi, grad) once the instrument SDF has converged
-        self._model_points: np.ndarray | None = None
+        self.model_points: np.ndarray | None = None  # the keyframes' points in the object frame
 
     # ----------------------------------------------------------------------------------------------- public API
 
@@ -256,13 +256,15 @@ class SurgTracker:
                       obs.depth, obs.valid, obs.K)
         self.pool.add(kf)
         pts = transform(inv_T(node.pose), node.xyz[node.xyz[..., 2] > 0])
-        self._model_points = pts if self._model_points is None else np.concatenate([self._model_points, pts])
+        if self.model_points is not None:
+            pts = np.concatenate([self.model_points, pts])
+        self.model_points = voxel_downsample(pts, 0.002)
 
     def _predicted_mask(self, frame: Frame) -> np.ndarray:
         """No mask given: render the keyframes' points at the last pose and keep depth-consistent pixels."""
-        if self._model_points is None:
+        if self.model_points is None:
             return np.zeros(frame.depth.shape, bool)
-        return predict_mask(self._model_points, self.recent[-1].pose, frame.K, frame.depth)
+        return predict_mask(self.model_points, self.recent[-1].pose, frame.K, frame.depth)
 
     def _lose(self, clock: _Clock, confidence: float = 0.0) -> TrackResult:
         self.lost = True

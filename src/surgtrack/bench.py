@@ -1,0 +1,118 @@
+"""Benchmark: run methods (surgtrack and its ablations) over a synthetic suite, evaluate, tabulate like the paper."""
+
+from __future__ import annotations
+
+import json
+import resource
+import time
+from collections.abc import Callable
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from .config import TrackerConfig
+from .io import open_sequence
+from .metrics import evaluate
+from .pipeline import track_sequence
+from .synth import SynthSpec, is_rendered, render_sequence, suite_specs
+
+
+def method_config(name: str) -> TrackerConfig:
+    """The tracker configuration of a named method (the paper's Table 2 ablations are switches of one config)."""
+    cfg = TrackerConfig()
+    if name == "surgtrack":
+        return cfg
+    if name == "no-memory-pool":
+        cfg.pool = replace(cfg.pool, enabled=False)
+    elif name == "no-graph":
+        cfg.graph = replace(cfg.graph, enabled=False)
+    elif name == "no-occ-surf":
+        cfg.sdf = replace(cfg.sdf, occ_surf=False)
+    elif name in ("orb", "xfeat"):
+        cfg.ransac = replace(cfg.ransac, features=name)
+    else:
+        raise ValueError(f"unknown method {name!r}; choose from {', '.join(METHODS)}")
+    return cfg
+
+
+METHODS = ("surgtrack", "no-memory-pool", "no-graph", "no-occ-surf", "orb", "xfeat")
+
+
+def shorten(spec: SynthSpec, frames: int) -> SynthSpec:
+    """The same sequence cut to ``frames`` frames, its occlusion and fast stretches scaled to fit."""
+    def scale(segments: tuple) -> tuple:
+        return tuple((round(s * frames / spec.frames), max(1, round(n * frames / spec.frames))) for s, n in segments)
+
+    return replace(spec, frames=frames, full_occlusions=scale(spec.full_occlusions),
+                   fast_segments=scale(spec.fast_segments))
+
+
+def run_bench(suite: str, methods: list[str], root: Path | str, short: bool = False, frames: int | None = None,
+              first_mask_only: bool = False, log: Callable[[str], None] = print) -> dict:
+    """Render the suite if needed, run every method on every sequence, evaluate; returns the bench.json dict."""
+    root = Path(root)
+    results: dict = {"suite": suite, "short": short, "frames": frames, "first_mask_only": first_mask_only,
+                     "methods": {}}
+    specs = suite_specs(suite, short)
+    for name, spec in specs:
+        spec = shorten(spec, frames) if frames else spec
+        path = root / "data" / name
+        if not is_rendered(spec, path):
+            log(f"rendering {name} ({spec.frames} frames, {spec.width}x{spec.height})")
+            render_sequence(spec, path)
+    for method in methods:
+        cfg = method_config(method)
+        per_seq = {}
+        for name, _ in specs:
+            seq = open_sequence(root / "data" / name)
+            out = root / method / name
+            t0 = time.perf_counter()
+            summary = track_sequence(seq, out, cfg, first_mask_only)
+            m = evaluate(out, seq)
+            per_seq[name] = {"add_s_auc": m["add_s_auc"], "add_auc": m["add_auc"], "cd_cm": m["cd_cm"],
+                             "add_s_auc_full": m["add_s_auc_full"], "add_auc_full": m["add_auc_full"],
+                             "lost": summary.lost, "frames": summary.frames, "fps": summary.fps,
+                             "stage_ms": summary.stage_ms, "seconds": time.perf_counter() - t0}
+            log(f"{method:>15} {name:<18} ADD-S {m['add_s_auc']:6.2f}  ADD {m['add_auc']:6.2f}  "
+                f"lost {summary.lost:3d}  {summary.fps:5.1f} fps")
+        results["methods"][method] = {"sequences": per_seq, **_mean(per_seq)}
+    results["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    (root / "bench.json").write_text(json.dumps(results, indent=2))
+    (root / "bench.md").write_text(format_table(results))
+    return results
+
+
+def _mean(per_seq: dict) -> dict:
+    def avg(key: str) -> float | None:
+        vals = [v[key] for v in per_seq.values() if v[key] is not None]
+        return float(np.mean(vals)) if vals else None
+
+    frames = sum(v["frames"] for v in per_seq.values())
+    seconds = sum(v["frames"] / v["fps"] for v in per_seq.values() if v["fps"] > 0)
+    stages = {k: float(np.mean([v["stage_ms"].get(k, 0.0) for v in per_seq.values()]))
+              for k in {k for v in per_seq.values() for k in v["stage_ms"]}}
+    return {"add_s_auc": avg("add_s_auc"), "add_auc": avg("add_auc"), "cd_cm": avg("cd_cm"),
+            "fps": frames / seconds if seconds else 0.0, "stage_ms": stages}
+
+
+def _fmt(x: float | None) -> str:
+    return "-" if x is None else f"{x:.2f}"
+
+
+def format_table(results: dict) -> str:
+    """The paper's layout: one row a method (ADD-S AUC %, ADD AUC %, CD cm, frames/s), then per-sequence detail."""
+    lines = [f"## {results['suite']}" + (" (first-frame mask only)" if results["first_mask_only"] else ""), "",
+             "| method | ADD-S AUC % | ADD AUC % | CD cm | frames/s | ms per stage |", "|---|---|---|---|---|---|"]
+    for method, r in results["methods"].items():
+        stages = ", ".join(f"{k} {v:.1f}" for k, v in sorted(r["stage_ms"].items()))
+        lines.append(f"| {method} | {_fmt(r['add_s_auc'])} | {_fmt(r['add_auc'])} | {_fmt(r['cd_cm'])} | "
+                     f"{r['fps']:.1f} | {stages} |")
+    lines += ["", "| sequence | " + " | ".join(f"{m} ADD-S / ADD" for m in results["methods"]) + " |",
+              "|---|" + "---|" * len(results["methods"])]
+    names = next(iter(results["methods"].values()))["sequences"].keys() if results["methods"] else []
+    for name in names:
+        cells = [f"{_fmt(r['sequences'][name]['add_s_auc'])} / {_fmt(r['sequences'][name]['add_auc'])}"
+                 for r in results["methods"].values()]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"

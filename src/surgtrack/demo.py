@@ -1,0 +1,99 @@
+"""The demo: synthesise a procedural instrument video, track it from the first-frame mask, evaluate, report."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .config import TrackerConfig
+from .io import Frame, open_sequence
+from .metrics import evaluate
+from .overlay import OverlayVideo, draw_overlay
+from .pipeline import track_sequence
+from .plots import plot_evaluation
+from .synth import SynthSpec, render_sequence
+from .tracker import SurgTracker, TrackResult
+
+DEMO_SPEC = SynthSpec(instrument="forceps", frames=120, seed=3, n_occluders=1, depth_range=(0.25, 0.45))
+
+
+def run_demo(out: Path | str, spec: SynthSpec = DEMO_SPEC, first_mask_only: bool = True,
+             progress: Callable[[str, int, int], None] | None = None) -> dict:
+    """Write OUT/sequence (the video), OUT/result (poses, mesh, metrics) and OUT/report.md with pictures."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    seq_dir = render_sequence(spec, out / "sequence",
+                              None if progress is None else (lambda i, n: progress("render", i, n)))
+    seq = open_sequence(seq_dir)
+    tracker = SurgTracker(TrackerConfig())
+    video = OverlayVideo(out / "overlay.mp4", (spec.width, spec.height), fps=spec.fps)
+    stills = set(np.linspace(0, len(seq) - 1, 4).astype(int).tolist())
+    still_paths: list[Path] = []
+
+    def on_frame(frame: Frame, result: TrackResult) -> None:
+        pts = tracker.model_points if tracker.model_points is not None else np.zeros((0, 3))
+        img = draw_overlay(frame.rgb, result.pose, frame.K, pts, result.status)
+        video.write(img)
+        if frame.index in stills:
+            path = out / f"overlay_{frame.id}.png"
+            cv2.imwrite(str(path), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+            still_paths.append(path)
+        if progress is not None:
+            progress("track", frame.index + 1, len(seq))
+
+    try:
+        summary = track_sequence(seq, out / "result", tracker.cfg, first_mask_only, on_frame=on_frame,
+                                 tracker=tracker)
+    finally:
+        video.close()
+    metrics = evaluate(out / "result", seq)
+    (out / "result" / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    plots = plot_evaluation(metrics, out)
+    report = _report(spec, summary.to_dict(), metrics, plots, still_paths, out, first_mask_only)
+    (out / "report.md").write_text(report)
+    return {"summary": summary.to_dict(), "metrics": metrics, "report": out / "report.md"}
+
+
+def _f(x: float | None, digits: int = 2) -> str:
+    return "-" if x is None else f"{x:.{digits}f}"
+
+
+def _report(spec: SynthSpec, summary: dict, m: dict, plots: list[Path], stills: list[Path], out: Path,
+            first_mask_only: bool) -> str:
+    rel = [p.relative_to(out).as_posix() for p in plots]
+    lines = [
+        "# surgtrack demo",
+        "",
+        f"A procedural **{spec.instrument}** ({spec.frames} frames, {spec.width}x{spec.height}, "
+        f"{spec.n_occluders} occluding hand(s), RealSense-like depth noise) was rendered to `sequence/`, tracked "
+        f"{'from the first-frame mask only' if first_mask_only else 'with per-frame masks'}, and scored against "
+        "its ground truth with the BundleSDF HO3D protocol (first-frame alignment, AUC 0-10 cm).",
+        "",
+        "| ADD-S AUC % | ADD AUC % | ADD-S AUC % (whole model) | ADD AUC % (whole model) | CD cm | lost | frames/s |",
+        "|---|---|---|---|---|---|---|",
+        f"| {_f(m['add_s_auc'])} | {_f(m['add_auc'])} | {_f(m['add_s_auc_full'])} | {_f(m['add_auc_full'])} | "
+        f"{_f(m['cd_cm'])} | {summary['lost']} / {summary['frames']} | {summary['fps']:.1f} |",
+        "",
+        "Time per frame (ms): " + ", ".join(f"{k} {v:.1f}" for k, v in summary["stage_ms"].items()),
+        "",
+        "## Accuracy",
+        "",
+        *[f"![{p}]({p})" for p in rel],
+        "",
+        "## Tracked frames",
+        "",
+        "Green: the reconstructed model's outline at the tracked pose; axes: the object frame. "
+        "The full video is `overlay.mp4`.",
+        "",
+        *[f"![{p.name}]({p.name})" for p in sorted(stills)],
+        "",
+    ]
+    mesh = out / "result" / "mesh.ply"
+    if mesh.exists():
+        lines += ["## Reconstruction", "", "`result/mesh.ply` (object frame, metres); ground truth: "
+                  "`sequence/gt/model.ply`.", ""]
+    return "\n".join(lines)

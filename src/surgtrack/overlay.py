@@ -1,0 +1,48 @@
+"""Overlay frames and video: the model's outline and axes drawn at the tracked pose, lost frames marked."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .geometry import project, transform
+from .masking import render_depth
+
+
+def draw_overlay(rgb: np.ndarray, pose: np.ndarray | None, K: np.ndarray, points_obj: np.ndarray,
+                 status: str, axis_len: float = 0.03) -> np.ndarray:
+    """RGB frame with the model's silhouette outline (green) and object axes at ``pose``; lost frames say so."""
+    img = rgb.copy()
+    if pose is None:
+        cv2.rectangle(img, (0, 0), (img.shape[1] - 1, img.shape[0] - 1), (255, 0, 0), 6)
+        cv2.putText(img, "LOST", (12, 36), cv2.FONT_HERSHEY_SIMPLEX, 1.0, (255, 0, 0), 2, cv2.LINE_AA)
+        return img
+    sil = (render_depth(points_obj, pose, K, rgb.shape[:2]) > 0).astype(np.uint8)
+    contours, _ = cv2.findContours(sil, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    cv2.drawContours(img, contours, -1, (0, 255, 0), 2, cv2.LINE_AA)
+    axes = np.array([[0, 0, 0], [axis_len, 0, 0], [0, axis_len, 0], [0, 0, axis_len]])
+    uv, z = project(transform(pose, axes), K)
+    if np.all(z > 0):
+        o = tuple(int(x) for x in uv[0])
+        for k, colour in zip(range(1, 4), [(255, 0, 0), (0, 255, 0), (0, 0, 255)], strict=True):
+            cv2.line(img, o, tuple(int(x) for x in uv[k]), colour, 2, cv2.LINE_AA)
+    cv2.putText(img, status, (12, 30), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (255, 255, 255), 2, cv2.LINE_AA)
+    return img
+
+
+class OverlayVideo:
+    """MP4 of overlay frames (OpenCV's mp4v codec)."""
+
+    def __init__(self, path: Path | str, size: tuple[int, int], fps: float = 15.0):
+        self.path = Path(path)
+        self._writer = cv2.VideoWriter(str(self.path), cv2.VideoWriter_fourcc(*"mp4v"), fps, size)
+        if not self._writer.isOpened():
+            raise OSError(f"{self.path}: cannot open a video writer")
+
+    def write(self, rgb: np.ndarray) -> None:
+        self._writer.write(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+
+    def close(self) -> None:
+        self._writer.release()

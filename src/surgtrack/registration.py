@@ -1,0 +1,528 @@
+"""Stage 1, CAD-free registration: the Instrument SDF Psi fitted to posed, masked keyframe depth (paper eqs. 1-3).
+
+Psi lives on a dense voxel grid in the object frame (trilinear interpolation), starts from a TSDF fusion of the
+keyframes (`surgtrack.tsdf`) and is refined by Adam on
+
+    L = alpha L_occ + beta L_surf + w_free L_free + w_eik L_eik
+
+- L_surf (eq. 3): mean over V_surf of (Psi(v) + d_v - d_Delta)^2, V_surf the samples of instrument rays in the band
+  [d_Delta - truncation, d_Delta + surf_behind] around the observed depth d_Delta, d_v the sample's depth (camera z).
+  The depth gap d_v - d_Delta is projected on the observed surface normal (times the incidence cosine of the depth
+  map), so that Psi regresses a distance rather than a projective distance that grazing rays overestimate.
+- L_occ (eq. 2): mean over V_occ of (Psi(v) - delta)^2, V_occ the samples behind an occluder (a non-instrument
+  pixel's observed depth) or on rays of invalid depth on/next to the instrument mask, that lie in the near-surface
+  exterior of the current field (0 <= Psi < truncation): there the field is held at a small positive value instead
+  of being carved to empty; samples the field already places inside are left to the other views.
+- L_free: mean of relu(tau - Psi)^2 over samples a ray traversed in front of its observed surface: tau = truncation
+  in front of an instrument surface (normal-projected gap, capped), tau = delta on rays that miss the instrument
+  (they may graze it). Rays of occluders give free space only in front of the occluder.
+- L_eik: mean of (|grad Psi| - 1)^2 over grid nodes with |Psi| < 2 truncation (central differences).
+
+Sign convention: Psi > 0 outside the instrument (towards the camera), Psi < 0 inside, metres: on a ray
+Psi(v) ~ d_Delta - d_v. Residuals and losses are computed in units of the truncation (the grid stores Psi / truncation).
+
+With ``cfg.occ_surf = False`` (the paper's "w/o occlusion and texture optimisation" ablation) there is no L_occ: the
+fit is a plain TSDF regression integrated along the rays, and every non-instrument ray is free space along its whole
+length, so occluders carve the shape as in a naive system.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import threading
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+import trimesh
+from skimage import measure
+
+from .config import SDFConfig
+from .geometry import depth_to_xyz, inv_T
+from .tsdf import EMPTY, HOLE, SEEN, SURF, Grid, View, classify_pixels, fuse_tsdf, pick_device
+
+__all__ = ["BackgroundFitter", "InstrumentSDF", "View"]
+
+
+class _Rays:
+    """Rays of a set of views that cross the grid box, on the fitting device."""
+
+    def __init__(self, surf: dict[str, torch.Tensor], other: dict[str, torch.Tensor]):
+        self.surf = surf  # o, d (direction with unit camera z), depth, znear
+        self.other = other  # o, d, depth (0 invalid), znear, zfar, code
+
+
+def _box_interval(o: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Entry and exit ray parameter of rays o + t d through the box [lo, hi]."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d
+        t1 = (lo - o) * inv
+        t2 = (hi - o) * inv
+    t1 = np.nan_to_num(t1, nan=-np.inf)
+    t2 = np.nan_to_num(t2, nan=np.inf)
+    return np.minimum(t1, t2).max(axis=1), np.maximum(t1, t2).min(axis=1)
+
+
+def _incidence_cos(view: View, floor: float = 0.2) -> np.ndarray:
+    """|cos| of the angle between each pixel's viewing ray and the surface normal of the depth map (H, W).
+
+    Pixels without a normal (a neighbour missing or across the mask border) get 1; the value is floored at `floor`.
+    """
+    xyz = depth_to_xyz(view.depth, view.K)
+    ok = (view.depth > 0) & view.mask.astype(bool)
+    cos = np.ones(view.depth.shape)
+    dx = xyz[1:-1, 2:] - xyz[1:-1, :-2]
+    dy = xyz[2:, 1:-1] - xyz[:-2, 1:-1]
+    n = np.cross(dx, dy)
+    r = xyz[1:-1, 1:-1]
+    good = ok[1:-1, 2:] & ok[1:-1, :-2] & ok[2:, 1:-1] & ok[:-2, 1:-1] & ok[1:-1, 1:-1]
+    num = np.abs(np.einsum("ijk,ijk->ij", n, r))
+    den = np.linalg.norm(n, axis=-1) * np.linalg.norm(r, axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        c = np.where(good & (den > 0), num / den, 1.0)
+    cos[1:-1, 1:-1] = np.clip(c, floor, 1.0)
+    return cos
+
+
+def _gather_rays(views: list[View], grid: Grid, cfg: SDFConfig, device: torch.device) -> _Rays:
+    lo, hi = grid.origin, grid.upper
+    surf: dict[str, list[np.ndarray]] = {k: [] for k in ("o", "d", "depth", "znear", "cos")}
+    other: dict[str, list[np.ndarray]] = {k: [] for k in ("o", "d", "depth", "znear", "zfar", "code")}
+    for view in views:
+        h, w = view.depth.shape
+        codes = classify_pixels(view, cfg.occ_dilate)
+        if not cfg.occ_surf:
+            off_hole = (codes == HOLE) & ~view.mask.astype(bool)
+            codes = np.where(off_hole, EMPTY, codes).astype(np.int8)
+            codes[(codes == HOLE)] = -1  # invalid depth on the mask: no evidence without occlusion handling
+        keep = codes >= 0
+        if cfg.ray_stride > 1:
+            grid_px = np.zeros((h, w), dtype=bool)
+            grid_px[:: cfg.ray_stride, :: cfg.ray_stride] = True
+            keep &= grid_px | (codes == SURF)
+        v, u = np.nonzero(keep)
+        code = codes[v, u]
+        cos_map = _incidence_cos(view)
+        depth = view.depth[v, u].astype(np.float64)
+        Kinv = np.linalg.inv(view.K)
+        cam = np.stack([u, v, np.ones_like(u)], axis=1).astype(np.float64) @ Kinv.T
+        cam /= cam[:, 2:3]
+        T_co = inv_T(view.pose)
+        d = cam @ T_co[:3, :3].T
+        o = np.broadcast_to(T_co[:3, 3], d.shape)
+        t0, t1 = _box_interval(o, d, lo, hi)
+        t0 = np.maximum(t0, 1e-3)
+        is_surf = code == SURF
+        s = is_surf & (depth + cfg.truncation > t0) & (depth - cfg.truncation < t1)
+        r = ~is_surf & (t1 > t0)
+        cos = cos_map[v, u]
+        for key, val in (("o", o[s]), ("d", d[s]), ("depth", depth[s]), ("znear", t0[s]), ("cos", cos[s])):
+            surf[key].append(val)
+        for key, val in (("o", o[r]), ("d", d[r]), ("depth", depth[r]), ("znear", t0[r]), ("zfar", t1[r])):
+            other[key].append(val)
+        other["code"].append(code[r])
+
+    def cat(parts: dict[str, list[np.ndarray]]) -> dict[str, torch.Tensor]:
+        out = {}
+        for key, val in parts.items():
+            arr = np.concatenate(val) if val else np.zeros((0, 3) if key in ("o", "d") else (0,))
+            dtype = torch.long if key == "code" else torch.float32
+            out[key] = torch.as_tensor(np.ascontiguousarray(arr), device=device, dtype=dtype)
+        return out
+
+    return _Rays(cat(surf), cat(other))
+
+
+def _plateaued(losses: list[float], tol: float) -> bool:
+    """True when the mean loss of the last quarter of the steps is within `tol` (relative) of the quarter before."""
+    q = len(losses) // 4
+    if q < 5:
+        return False
+    last, prev = float(np.mean(losses[-q:])), float(np.mean(losses[-2 * q : -q]))
+    return bool(prev > 0 and (prev - last) / prev < tol)
+
+
+class InstrumentSDF:
+    """Dense-grid signed distance field Psi of the instrument in the object frame (paper eq. 1).
+
+    `center` and `extent` (side length, scalar or per axis, metres) set the box the grid covers; the voxel is
+    `cfg.voxel_size`. The grid runs on CUDA when torch sees one unless `device` says otherwise.
+    """
+
+    def __init__(
+        self, cfg: SDFConfig, center: np.ndarray, extent: float | np.ndarray, device: str | torch.device | None = None
+    ):
+        self.cfg = cfg
+        self.device = pick_device(device)
+        self.grid = Grid.around(np.asarray(center, dtype=np.float64), extent, cfg.voxel_size)
+        self.psi = torch.ones(self.grid.shape, device=self.device)  # Psi / truncation
+        self.weight = torch.zeros(self.grid.shape, device=self.device)
+        self.fitted = False
+        self.converged = False
+        self.last_losses: dict[str, float] = {}
+        self._host: np.ndarray | None = None
+
+    # -- fitting -----------------------------------------------------------------------------------------------
+    def init_tsdf(self, views: list[View]) -> None:
+        """Initialise Psi by TSDF fusion of the views (occlusion-aware unless cfg.occ_surf is False)."""
+        c = self.cfg
+        self.psi, self.weight = fuse_tsdf(views, self.grid, c.truncation, c.occ_surf, c.occ_dilate, self.device)
+        self._host = None
+
+    def refit(self, views: list[View], iterations: int | None = None) -> dict:
+        """Incremental refit: warm start from the current field, TSDF values only where nothing was observed yet."""
+        if not self.fitted:
+            self.init_tsdf(views)
+        else:
+            c = self.cfg
+            psi, weight = fuse_tsdf(views, self.grid, c.truncation, c.occ_surf, c.occ_dilate, self.device)
+            new = (self.weight == 0) & (weight > 0)
+            self.psi = torch.where(new, psi, self.psi)
+            self.weight = torch.maximum(self.weight, weight)
+        return self.fit(views, iterations)
+
+    def _sample(self, vol: torch.Tensor, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Trilinear Psi / truncation at object-frame points (N, 3) and a mask of points inside the grid."""
+        lo = torch.as_tensor(self.grid.origin, device=p.device, dtype=torch.float32)
+        span = torch.as_tensor(self.grid.upper - self.grid.origin, device=p.device, dtype=torch.float32)
+        g = 2.0 * (p - lo) / span - 1.0
+        inside = (g.abs() <= 1.0).all(dim=1)
+        val = F.grid_sample(vol, g.view(1, 1, 1, -1, 3), mode="bilinear", padding_mode="border", align_corners=True)
+        return val.view(-1), inside
+
+    def _losses(self, param: torch.Tensor, rays: _Rays, gen: torch.Generator) -> dict[str, torch.Tensor]:
+        c = self.cfg
+        dev = param.device
+        vol = param.permute(2, 1, 0)[None, None]  # (1, 1, nz, ny, nx): grid_sample reads (x, y, z)
+        tr = c.truncation
+        S = c.samples_per_ray
+        zero = torch.zeros((), device=dev)
+        out = {"surf": zero, "free": zero, "occ": zero}
+
+        sr = rays.surf
+        if sr["depth"].numel():
+            idx = torch.randint(sr["depth"].numel(), (c.batch_rays,), generator=gen, device=dev)
+            o, d, dep, zn, cs = sr["o"][idx], sr["d"][idx], sr["depth"][idx], sr["znear"][idx], sr["cos"][idx]
+            k = torch.arange(S, device=dev, dtype=torch.float32)
+            jit = torch.rand((idx.numel(), S), generator=gen, device=dev)
+            behind = min(c.surf_behind, tr)
+            zb = dep[:, None] - tr + (tr + behind) * (k + jit) / S
+            val, inside = self._sample(vol, (o[:, None] + zb[..., None] * d[:, None]).reshape(-1, 3))
+            res = val + (zb.reshape(-1) - dep.repeat_interleave(S)) * cs.repeat_interleave(S) / tr
+            m = inside & (zb.reshape(-1) > zn.repeat_interleave(S))
+            surf_res = res[m]
+            surf_len = torch.full_like(surf_res, (tr + behind) / S)
+            nf = max(S // 2, 1)
+            span = (dep - tr - zn).clamp(min=0.0)
+            jit = torch.rand((idx.numel(), nf), generator=gen, device=dev)
+            zf = zn[:, None] + span[:, None] * (torch.arange(nf, device=dev) + jit) / nf
+            fval, finside = self._sample(vol, (o[:, None] + zf[..., None] * d[:, None]).reshape(-1, 3))
+            fm = finside & (span > 0).repeat_interleave(nf)
+            # In front of an instrument surface the distance to it is at least the normal-projected depth gap.
+            ftarget = ((dep[:, None] - zf) * cs[:, None] / tr).clamp(max=1.0).reshape(-1)
+            free_parts = [fval[fm] - ftarget[fm] + 1.0]
+            free_lens = [(span / nf).repeat_interleave(nf)[fm]]
+        else:
+            surf_res = surf_len = torch.zeros(0, device=dev)
+            free_parts, free_lens = [], []
+
+        orr = rays.other
+        occ_parts: list[torch.Tensor] = []
+        if orr["depth"].numel():
+            idx = torch.randint(orr["depth"].numel(), (c.batch_rays,), generator=gen, device=dev)
+            o, d, dep = orr["o"][idx], orr["d"][idx], orr["depth"][idx]
+            zn, zf, code = orr["znear"][idx], orr["zfar"][idx], orr["code"][idx]
+            jit = torch.rand((idx.numel(), S), generator=gen, device=dev)
+            z = zn[:, None] + (zf - zn)[:, None] * (torch.arange(S, device=dev) + jit) / S
+            val, inside = self._sample(vol, (o[:, None] + z[..., None] * d[:, None]).reshape(-1, 3))
+            z = z.reshape(-1)
+            dep = dep.repeat_interleave(S)
+            code = code.repeat_interleave(S)
+            seen = code == SEEN
+            if c.occ_surf:
+                free = (code == EMPTY) | (seen & (z < dep - tr))
+                occ = (code == HOLE) | (seen & (z > dep))
+                v_det = val.detach()
+                occ = occ & inside & (v_det >= 0) & (v_det < 1)
+                if occ.any():
+                    occ_parts.append(val[occ] - c.delta / tr)
+            else:
+                free = (code == EMPTY) | seen
+            # A ray that misses the instrument may graze it: it only says Psi >= delta along its free part.
+            free_parts.append(val[free & inside] + (1.0 - c.delta / tr if c.occ_surf else 0.0))
+            free_lens.append(((zf - zn) / S).repeat_interleave(S)[free & inside])
+        free_val = torch.cat(free_parts) if free_parts else torch.zeros(0, device=dev)
+        if c.occ_surf:
+            if surf_res.numel():
+                out["surf"] = (surf_res**2).mean()
+            if free_val.numel():
+                out["free"] = (torch.relu(1.0 - free_val) ** 2).mean()
+            if occ_parts:
+                out["occ"] = (torch.cat(occ_parts) ** 2).mean()
+        else:
+            # Plain TSDF regression, integrated along the rays (each sample weighted by the ray length it stands
+            # for, as TSDF fusion votes per voxel): free space has target +truncation.
+            res = torch.cat([surf_res, free_val - 1.0])
+            lens = torch.cat([surf_len, *free_lens])
+            if res.numel():
+                out["surf"] = (lens * res**2).sum() / lens.sum()
+
+        gx = (param[2:, 1:-1, 1:-1] - param[:-2, 1:-1, 1:-1]) / 2
+        gy = (param[1:-1, 2:, 1:-1] - param[1:-1, :-2, 1:-1]) / 2
+        gz = (param[1:-1, 1:-1, 2:] - param[1:-1, 1:-1, :-2]) / 2
+        gnorm = torch.sqrt(gx**2 + gy**2 + gz**2 + 1e-12) * tr / self.grid.voxel
+        band = param[1:-1, 1:-1, 1:-1].detach().abs() < 2.0
+        out["eik"] = ((gnorm[band] - 1.0) ** 2).mean() if band.any() else zero
+        out["total"] = c.alpha * out["occ"] + c.beta * out["surf"] + c.w_free * out["free"] + c.w_eik * out["eik"]
+        return out
+
+    def fit(self, views: list[View], iterations: int | None = None, seed: int = 0) -> dict:
+        """Adam on the grid values with L = alpha L_occ (eq. 2) + beta L_surf (eq. 3) + w_free L_free + w_eik L_eik.
+
+        Starts from the current field (call `init_tsdf` first for a fresh fit). Returns the loss history (every
+        step, dimensionless: residuals in units of the truncation), the final losses, `surf_rms_m` and `seconds`.
+        """
+        t0 = time.perf_counter()
+        n_iter = self.cfg.iterations if iterations is None else int(iterations)
+        rays = _gather_rays(views, self.grid, self.cfg, self.device)
+        gen = torch.Generator(device=self.device)
+        gen.manual_seed(seed)
+        param = self.psi.detach().clone().requires_grad_(True)
+        opt = torch.optim.Adam([param], lr=self.cfg.lr)
+        history: dict[str, list[float]] = {k: [] for k in ("total", "surf", "occ", "free", "eik")}
+        for _ in range(n_iter):
+            opt.zero_grad(set_to_none=True)
+            losses = self._losses(param, rays, gen)
+            losses["total"].backward()
+            opt.step()
+            for k in history:
+                history[k].append(float(losses[k].detach()))
+        self.psi = param.detach()
+        self._host = None
+        self.fitted = True
+        tail = max(1, n_iter // 10)
+        final = {k: float(np.mean(v[-tail:])) if v else float("nan") for k, v in history.items()}
+        surf_rms = float(np.sqrt(final["surf"])) * self.cfg.truncation if n_iter else float("nan")
+        self.converged = self.converged or _plateaued(history["total"], self.cfg.converged_tol)
+        self.last_losses = final
+        return {
+            "history": history,
+            "final": final,
+            "surf_rms_m": surf_rms,
+            "seconds": time.perf_counter() - t0,
+            "rays": (int(rays.surf["depth"].numel()), int(rays.other["depth"].numel())),
+        }
+
+    # -- queries -----------------------------------------------------------------------------------------------
+    def __call__(self, points_obj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Same as `query` (the posture graph's L_SDF hook, eq. 11)."""
+        return self.query(points_obj)
+
+    def values(self) -> np.ndarray:
+        """Psi on the grid nodes, (nx, ny, nz) float32 metres (a cached host copy)."""
+        if self._host is None:
+            self._host = (self.psi.detach() * self.cfg.truncation).float().cpu().numpy()
+        return self._host
+
+    def query(self, points_obj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Psi (N,) and its gradient (N, 3) at object-frame points (N, 3), metres; numpy trilinear on a host copy.
+
+        Outside the grid box Psi is the value at the nearest box point plus the distance to the box.
+        """
+        vol = self.values()
+        p = np.asarray(points_obj, dtype=np.float64).reshape(-1, 3)
+        n = np.array(self.grid.shape)
+        lo, hi = self.grid.origin, self.grid.upper
+        pc = np.clip(p, lo, hi)
+        g = (pc - lo) / self.grid.voxel
+        i0 = np.minimum(np.floor(g).astype(np.int64), n - 2)
+        f = g - i0
+        flat = vol.reshape(-1)
+        ny, nz = int(n[1]), int(n[2])
+        base = (i0[:, 0] * ny + i0[:, 1]) * nz + i0[:, 2]
+        c = {}
+        for a in (0, 1):
+            for b in (0, 1):
+                for e in (0, 1):
+                    c[a, b, e] = flat[base + (a * ny + b) * nz + e].astype(np.float64)
+        fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
+        c00 = c[0, 0, 0] * (1 - fz) + c[0, 0, 1] * fz
+        c01 = c[0, 1, 0] * (1 - fz) + c[0, 1, 1] * fz
+        c10 = c[1, 0, 0] * (1 - fz) + c[1, 0, 1] * fz
+        c11 = c[1, 1, 0] * (1 - fz) + c[1, 1, 1] * fz
+        c0 = c00 * (1 - fy) + c01 * fy
+        c1 = c10 * (1 - fy) + c11 * fy
+        val = c0 * (1 - fx) + c1 * fx
+        dx = c1 - c0
+        dy = (c01 - c00) * (1 - fx) + (c11 - c10) * fx
+        dz0 = (c[0, 0, 1] - c[0, 0, 0]) * (1 - fy) + (c[0, 1, 1] - c[0, 1, 0]) * fy
+        dz1 = (c[1, 0, 1] - c[1, 0, 0]) * (1 - fy) + (c[1, 1, 1] - c[1, 1, 0]) * fy
+        dz = dz0 * (1 - fx) + dz1 * fx
+        grad = np.stack([dx, dy, dz], axis=1) / self.grid.voxel
+        out = p - pc
+        dist = np.linalg.norm(out, axis=1)
+        far = dist > 0
+        if far.any():
+            val[far] += dist[far]
+            grad[far] = out[far] / dist[far, None]
+        return val, grad
+
+    def mesh(self, keep_frac: float = 0.1) -> trimesh.Trimesh:
+        """Zero level set by marching cubes (object frame, metres), outward normals; connected components with less
+        than `keep_frac` of the largest component's area are dropped as floaters."""
+        vol = self.values()
+        if not (vol.min() < 0 < vol.max()):
+            return trimesh.Trimesh()
+        v = self.grid.voxel
+        verts, faces, _, _ = measure.marching_cubes(vol, level=0.0, spacing=(v, v, v))
+        m = trimesh.Trimesh(verts + self.grid.origin, faces, process=True)
+        parts = m.split(only_watertight=False)
+        if len(parts) > 1:
+            areas = np.array([p.area for p in parts])
+            m = trimesh.util.concatenate([p for p, a in zip(parts, areas, strict=True) if a >= keep_frac * areas.max()])
+        if len(m.faces):
+            # Normals point to increasing Psi (outwards).
+            c = m.triangles_center
+            _, gr = self.query(c)
+            if np.sum(np.einsum("ij,ij->i", m.face_normals, gr)) < 0:
+                m.invert()
+        return m
+
+    # -- persistence -------------------------------------------------------------------------------------------
+    def state_dict(self) -> dict[str, np.ndarray]:
+        """Plain numpy state (fits in an npz or a model file): grid, weights, lattice, config, flags."""
+        return {
+            "psi": self.values().copy(),
+            "weight": self.weight.detach().cpu().numpy().astype(np.float32),
+            "origin": self.grid.origin.copy(),
+            "voxel": np.float64(self.grid.voxel),
+            "flags": np.array([self.fitted, self.converged]),
+            "cfg": np.array(json.dumps(asdict(self.cfg))),
+        }
+
+    def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
+        """Restore a `state_dict`; the lattice is taken from the state."""
+        psi = np.asarray(state["psi"], dtype=np.float32)
+        self.grid = Grid(
+            origin=np.asarray(state["origin"], dtype=np.float64),
+            voxel=float(state["voxel"]),
+            shape=(int(psi.shape[0]), int(psi.shape[1]), int(psi.shape[2])),
+        )
+        self.psi = torch.as_tensor(psi / self.cfg.truncation, device=self.device)
+        self.weight = torch.as_tensor(np.asarray(state["weight"], dtype=np.float32), device=self.device)
+        self.fitted, self.converged = (bool(x) for x in np.asarray(state["flags"]))
+        self._host = None
+
+    @classmethod
+    def from_state_dict(cls, state: dict[str, np.ndarray], device: str | torch.device | None = None) -> InstrumentSDF:
+        cfg = SDFConfig(**json.loads(str(np.asarray(state["cfg"]))))
+        psi = np.asarray(state["psi"])
+        origin = np.asarray(state["origin"], dtype=np.float64)
+        voxel = float(state["voxel"])
+        extent = (np.array(psi.shape) - 1) * voxel
+        sdf = cls(cfg, origin + extent / 2, extent, device=device)
+        sdf.load_state_dict(state)
+        return sdf
+
+    def to_npz(self, path: str | Path) -> None:
+        np.savez_compressed(path, **self.state_dict())
+
+    @classmethod
+    def from_npz(cls, path: str | Path, device: str | torch.device | None = None) -> InstrumentSDF:
+        with np.load(path) as z:
+            return cls.from_state_dict({k: z[k] for k in z.files}, device=device)
+
+    def copy(self) -> InstrumentSDF:
+        """Independent copy (tensors cloned)."""
+        other = copy.copy(self)
+        other.psi = self.psi.detach().clone()
+        other.weight = self.weight.detach().clone()
+        other.last_losses = dict(self.last_losses)
+        other._host = None
+        return other
+
+
+class BackgroundFitter:
+    """Refits the Instrument SDF on a worker thread as keyframes arrive; the tracker never waits on it.
+
+    `submit(views)` hands the current keyframes over and returns at once; a request that arrives while a fit runs
+    replaces any older queued one (only the newest keyframe set is fitted next). Each refit warm-starts from the
+    last completed field (`InstrumentSDF.refit`). `latest()` returns the last completed field, or None, without
+    taking a lock. The tracker must treat that object as read-only; every refit produces a new one.
+
+    torch's CPU thread pool is process-wide: `num_threads`, when given, calls ``torch.set_num_threads`` for the
+    whole process (1 leaves the other core of a 2-core machine to the tracker; with another busy process on 2 cores,
+    2 OpenMP threads made the fit about 10x slower than 1). On CUDA the GPU does the work.
+    """
+
+    def __init__(self, sdf: InstrumentSDF, iterations: int | None = None, num_threads: int | None = None):
+        if num_threads is not None:
+            torch.set_num_threads(int(num_threads))
+        self._base = sdf.copy()
+        self._iterations = iterations
+        self._latest: InstrumentSDF | None = sdf if sdf.fitted else None
+        self._pending: list[View] | None = None
+        self._busy = False
+        self._stop = False
+        self._cond = threading.Condition()
+        self.error: BaseException | None = None
+        self.fits_done = 0
+        self.last_report: dict | None = None
+        self._thread = threading.Thread(target=self._run, name="sdf-fitter", daemon=True)
+        self._thread.start()
+
+    def submit(self, views: list[View]) -> None:
+        """Queue a refit on these keyframes (non-blocking)."""
+        with self._cond:
+            if self._stop:
+                raise RuntimeError("BackgroundFitter is closed")
+            self._pending = list(views)
+            self._cond.notify_all()
+
+    def latest(self) -> InstrumentSDF | None:
+        """The most recently completed field, or None; never waits."""
+        return self._latest
+
+    @property
+    def busy(self) -> bool:
+        return self._busy or self._pending is not None
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Block until every submitted request is fitted (for tools and tests, not the tracker); False on timeout."""
+        with self._cond:
+            return self._cond.wait_for(lambda: not self.busy or self._stop, timeout=timeout)
+
+    def close(self, wait: bool = False) -> None:
+        """Stop the worker (after the queued request when `wait`); a fit in progress completes first."""
+        if wait:
+            self.wait()
+        with self._cond:
+            self._stop = True
+            self._pending = None
+            self._cond.notify_all()
+        self._thread.join()
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                self._cond.wait_for(lambda: self._stop or self._pending is not None)
+                if self._stop:
+                    return
+                views, self._pending = self._pending, None
+                self._busy = True
+            try:
+                work = self._base.copy()
+                self.last_report = work.refit(views, self._iterations)
+                self._base = work
+                self._latest = work
+                self.fits_done += 1
+            except BaseException as exc:  # noqa: BLE001 - reported through .error, the worker keeps serving
+                self.error = exc
+            finally:
+                with self._cond:
+                    self._busy = False
+                    self._cond.notify_all()
