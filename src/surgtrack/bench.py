@@ -11,11 +11,13 @@ from pathlib import Path
 
 import numpy as np
 
+from .baselines import BaselineTracker, FrameToFrameICPTracker, KinectFusionTracker, RansacOnlyTracker
 from .config import TrackerConfig
 from .io import open_sequence
 from .metrics import evaluate
 from .pipeline import track_sequence
 from .synth import SynthSpec, is_rendered, render_sequence, suite_specs
+from .tracker import SurgTracker
 
 
 def method_config(name: str) -> TrackerConfig:
@@ -32,11 +34,21 @@ def method_config(name: str) -> TrackerConfig:
     elif name in ("orb", "xfeat"):
         cfg.ransac = replace(cfg.ransac, features=name)
     else:
-        raise ValueError(f"unknown method {name!r}; choose from {', '.join(METHODS)}")
+        raise ValueError(f"unknown SurgTracker variant {name!r}; choose from {', '.join(SURGTRACK_METHODS)}")
     return cfg
 
 
-METHODS = ("surgtrack", "no-memory-pool", "no-graph", "no-occ-surf", "orb", "xfeat")
+SURGTRACK_METHODS = ("surgtrack", "no-memory-pool", "no-graph", "no-occ-surf", "orb", "xfeat")
+BASELINES: dict[str, type[BaselineTracker]] = {
+    "kinectfusion": KinectFusionTracker, "icp": FrameToFrameICPTracker, "ransac-only": RansacOnlyTracker}
+METHODS = SURGTRACK_METHODS + tuple(BASELINES)
+
+
+def make_tracker(name: str) -> SurgTracker | BaselineTracker:
+    """A fresh tracker for a named method: a SurgTracker variant (``method_config``) or a baseline."""
+    if name in BASELINES:
+        return BASELINES[name]()
+    return SurgTracker(method_config(name))
 
 
 def shorten(spec: SynthSpec, frames: int) -> SynthSpec:
@@ -62,13 +74,15 @@ def run_bench(suite: str, methods: list[str], root: Path | str, short: bool = Fa
             log(f"rendering {name} ({spec.frames} frames, {spec.width}x{spec.height})")
             render_sequence(spec, path)
     for method in methods:
-        cfg = method_config(method)
+        if method not in METHODS:
+            raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
         per_seq = {}
         for name, _ in specs:
             seq = open_sequence(root / "data" / name)
             out = root / method / name
             t0 = time.perf_counter()
-            summary = track_sequence(seq, out, cfg, first_mask_only)
+            tracker = make_tracker(method)
+            summary = track_sequence(seq, out, tracker.cfg, first_mask_only, tracker=tracker)
             m = evaluate(out, seq)
             per_seq[name] = {"add_s_auc": m["add_s_auc"], "add_auc": m["add_auc"], "cd_cm": m["cd_cm"],
                              "add_s_auc_full": m["add_s_auc_full"], "add_auc_full": m["add_auc_full"],

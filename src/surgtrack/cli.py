@@ -170,24 +170,247 @@ def track(
     no_graph: Annotated[bool, typer.Option("--no-graph", help="ablation: RANSAC + Kabsch only")] = False,
     depth_scale: Annotated[float, typer.Option(help="metres per depth unit")] = 0.001,
     config: Annotated[Path | None, typer.Option(help="JSON config (see OUT/config.json of any run)")] = None,
+    video: Annotated[Path | None, typer.Option(help="also write an overlay video (model outline, axes, lost frames)")]
+    = None,
+    model: Annotated[Path | None, typer.Option(help="registered instrument model (NAME.stm from surgtrack register)")]
+    = None,
 ) -> None:
     """Track an instrument through a recorded RGB-D video: a pose per frame and a mesh, in OUT."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     from .io import open_sequence
     from .pipeline import track_sequence
+    from .tracker import SurgTracker
 
     cfg = load_config(config, **{"ransac.features": features, "pool.enabled": not no_memory_pool,
                                  "graph.enabled": not no_graph})
     sequence = open_sequence(seq, depth_scale=depth_scale)
+    tracker = SurgTracker(cfg, model=_load_model(model, cfg) if model is not None else None)
+    overlay = _OverlayWriter(video, tracker) if video is not None else None
     columns = (TextColumn("tracking"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[status]}"),
                TimeRemainingColumn())
-    with Progress(*columns, transient=True) as progress:
-        task = progress.add_task("track", total=len(sequence), status="")
-        summary = track_sequence(sequence, out, cfg, first_mask_only,
-                                 on_frame=lambda f, r: progress.update(task, completed=f.index + 1, status=r.status))
+
+    def on_frame(frame, result) -> None:
+        progress.update(task, completed=frame.index + 1, status=result.status)
+        if overlay is not None:
+            overlay.write(frame, result)
+
+    try:
+        with Progress(*columns, transient=True) as progress:
+            task = progress.add_task("track", total=len(sequence), status="")
+            summary = track_sequence(sequence, out, cfg, first_mask_only, on_frame=on_frame, tracker=tracker)
+    finally:
+        if overlay is not None:
+            overlay.close()
     stages = ", ".join(f"{k} {v:.1f}" for k, v in summary.stage_ms.items())
     typer.echo(f"{summary.frames} frames, {summary.lost} lost, {summary.fps:.1f} frames/s ({stages} ms) -> {out}")
+    if video is not None:
+        typer.echo(f"wrote {video}")
+
+
+def _load_model(path: Path, cfg):
+    """A model file for `track --model`, checked against the tracker config (one-line errors)."""
+    from .model import load_model
+
+    instrument_model = load_model(path)
+    try:
+        instrument_model.check_compatible(cfg)
+    except ValueError as e:
+        fail(f"{path}: {e}")
+    return instrument_model
+
+
+@app.command()
+def register(
+    seq: Annotated[Path, typer.Argument(help="scan video of the instrument (sequence folder or BOP scene)")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="model file to write (NAME.stm)")],
+    first_mask_only: Annotated[bool, typer.Option(help="use only the first frame's mask, make the rest")] = False,
+    depth_scale: Annotated[float, typer.Option(help="metres per depth unit")] = 0.001,
+    config: Annotated[Path | None, typer.Option(help="JSON config (see OUT/config.json of any run)")] = None,
+    results: Annotated[Path | None, typer.Option(help="folder for the scan's poses and mesh [default: NAME_register "
+                                                      "beside the model]")] = None,
+) -> None:
+    """Build an instrument model (SDF, mesh, keyframes with features) from a scan video, for `track --model`."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from .io import open_sequence
+    from .model import InstrumentModel, save_model
+    from .pipeline import track_sequence
+    from .tracker import SurgTracker
+
+    if not depth_scale > 0:
+        fail(f"--depth-scale must be positive, got {depth_scale}")
+    if out.is_dir():
+        fail(f"{out}: is a folder; --out names the model file to write (NAME.stm)")
+    cfg = load_config(config)
+    sequence = open_sequence(seq, depth_scale=depth_scale)
+    results = results if results is not None else out.with_name(f"{out.stem}_register")
+    tracker = SurgTracker(cfg)
+    columns = (TextColumn("scanning"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[status]}"),
+               TimeRemainingColumn())
+    with Progress(*columns, transient=True) as progress:
+        task = progress.add_task("register", total=len(sequence), status="")
+        summary = track_sequence(sequence, results, cfg, first_mask_only, tracker=tracker,
+                                 on_frame=lambda f, r: progress.update(task, completed=f.index + 1, status=r.status))
+    instrument_model = InstrumentModel.from_tracker(
+        tracker, {"source": str(seq.resolve()), "frames": summary.frames, "lost": summary.lost})
+    try:
+        save_model(instrument_model, out)
+    except OSError as e:
+        fail(f"{out}: cannot write the model ({e.strerror or e})")
+    sdf = instrument_model.sdf
+    field = "no SDF" if sdf is None else f"SDF {'x'.join(map(str, sdf.grid.shape))} at {sdf.grid.voxel * 1e3:g} mm"
+    faces = 0 if instrument_model.mesh is None else len(instrument_model.mesh.faces)
+    typer.echo(f"{summary.frames} frames, {summary.lost} lost -> scan poses and mesh in {results}")
+    typer.echo(f"model: {len(instrument_model.keyframes)} keyframes, {field}, mesh {faces} faces, "
+               f"{out.stat().st_size / 1e6:.1f} MB -> {out}")
+
+
+class _OverlayWriter:
+    """Overlay video of tracked frames (the tracker's keyframe points outlined at each pose), opened at the first
+    frame's size."""
+
+    def __init__(self, path: Path, tracker, fps: float = 15.0):
+        self.path, self.tracker, self.fps = path, tracker, fps
+        self._video = None
+
+    def write(self, frame, result) -> None:
+        import numpy as np
+
+        from .overlay import OverlayVideo, draw_overlay
+
+        if self._video is None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            try:
+                self._video = OverlayVideo(self.path, (frame.rgb.shape[1], frame.rgb.shape[0]), self.fps)
+            except OSError as e:
+                fail(str(e))
+        points = self.tracker.model_points if self.tracker.model_points is not None else np.zeros((0, 3))
+        self._video.write(draw_overlay(frame.rgb, result.pose, frame.K, points, result.status))
+
+    def close(self) -> None:
+        if self._video is not None:
+            self._video.close()
+
+
+@app.command()
+def live(
+    file: Annotated[Path | None, typer.Option("--file", help="play a RealSense recording instead of reading a "
+                                                             "camera")] = None,
+    mask: Annotated[Path | None, typer.Option(help="first frame's instrument mask (PNG, >0 = instrument)")] = None,
+    box: Annotated[str | None, typer.Option(help="x0,y0,x1,y1 box around the instrument in the first frame: the mask "
+                                                 "is the depth-continuous surface of the nearest depth cluster in it")]
+    = None,
+    igtl_port: Annotated[int, typer.Option(help="OpenIGTLink server port (0: any free port)")] = 18944,
+    no_igtl: Annotated[bool, typer.Option("--no-igtl", help="do not stream poses over OpenIGTLink")] = False,
+    igtl_interface: Annotated[str | None, typer.Option(help="network interface to listen on (e.g. eth0; default: "
+                                                           "127.0.0.1 only)")] = None,
+    device_name: Annotated[str, typer.Option(help="OpenIGTLink device name of the TRANSFORM messages")]
+    = "InstrumentToCamera",
+    status_device: Annotated[str, typer.Option(help="OpenIGTLink device name of the STRING status messages")]
+    = "TrackingStatus",
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="also write ob_in_cam/ and track.jsonl here")]
+    = None,
+    video: Annotated[Path | None, typer.Option(help="write an overlay video")] = None,
+    max_frames: Annotated[int | None, typer.Option(help="stop after this many frames")] = None,
+    size: Annotated[str, typer.Option(help="camera stream WIDTHxHEIGHT")] = "640x480",
+    fps: Annotated[int, typer.Option(help="camera frame rate")] = 30,
+    config: Annotated[Path | None, typer.Option(help="JSON config (see OUT/config.json of any run)")] = None,
+) -> None:
+    """Track an instrument live from a RealSense camera (or a recording) and stream its pose over OpenIGTLink."""
+    import json
+    import time
+
+    from .io import ResultWriter, read_mask
+    from .realsense import RealSenseError, RealSenseSource, box_mask, parse_box
+
+    if (mask is None) == (box is None):
+        fail("give the first frame's instrument with --mask FILE or with --box x0,y0,x1,y1 (one of them)")
+    try:
+        box_xyxy = parse_box(box) if box is not None else None
+    except ValueError as e:
+        fail(f"--box: {e}")
+    try:
+        width, height = (int(v) for v in size.lower().split("x"))
+    except ValueError:
+        fail(f"--size expects WIDTHxHEIGHT, got {size!r}")
+    if max_frames is not None and max_frames < 1:
+        fail(f"--max-frames must be at least 1, got {max_frames}")
+    first_mask = read_mask(mask) if mask is not None else None
+    cfg = load_config(config)
+    try:
+        source = RealSenseSource(file, width, height, fps)
+    except RealSenseError as e:
+        fail(str(e))
+    from .tracker import LOST, RELOCALISED, TRACKED, SurgTracker, TrackResult
+
+    streamer = writer = tracker = None
+    overlay: _OverlayWriter | None = None
+    counts = {TRACKED: 0, LOST: 0, RELOCALISED: 0}
+    n = 0
+    t0 = time.perf_counter()
+    try:
+        if not no_igtl:
+            from .igtl import PoseStreamer
+
+            try:
+                streamer = PoseStreamer(igtl_port, device_name, status_device, igtl_interface)
+            except (OSError, ValueError) as e:
+                fail(f"OpenIGTLink server on port {igtl_port}: {e}")
+            typer.echo(f"streaming {device_name} (mm) and {status_device} over OpenIGTLink on port {streamer.port}")
+        if out is not None:
+            writer = ResultWriter(out)
+            (out / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
+        tracker = SurgTracker(cfg)
+        if video is not None:
+            overlay = _OverlayWriter(video, tracker, source.fps)
+        for frame in source:
+            if n == 0:
+                if first_mask is None:
+                    try:
+                        first_mask = box_mask(frame.depth, box_xyxy)
+                    except ValueError as e:
+                        fail(f"--box: {e}")
+                if first_mask.shape != frame.depth.shape:
+                    fail(f"{mask}: mask size {first_mask.shape[1]}x{first_mask.shape[0]} != frame size "
+                         f"{frame.depth.shape[1]}x{frame.depth.shape[0]}")
+                try:
+                    result = TrackResult(tracker.register(frame, first_mask), TRACKED, 1.0)
+                except ValueError as e:
+                    fail(str(e))
+            else:
+                result = tracker.track(frame)
+            if streamer is not None:
+                streamer.send(result)
+            if writer is not None:
+                writer.write(frame.id, result.pose, {"status": result.status, "confidence": round(result.confidence, 4),
+                                                     "ms": {k: round(v * 1e3, 2) for k, v in result.timings.items()}})
+            if overlay is not None:
+                overlay.write(frame, result)
+            counts[result.status] = counts.get(result.status, 0) + 1
+            n += 1
+            if max_frames is not None and n >= max_frames:
+                break
+    except KeyboardInterrupt:
+        typer.echo("stopped")
+    except RealSenseError as e:
+        fail(str(e))
+    finally:
+        source.close()
+        fitter = getattr(tracker, "fitter", None)
+        if fitter is not None:
+            fitter.close()
+        if streamer is not None:
+            streamer.close()
+        if writer is not None:
+            writer.close()
+        if overlay is not None:
+            overlay.close()
+    if n == 0:
+        fail(f"{file or 'camera'}: no frames")
+    seconds = time.perf_counter() - t0
+    typer.echo(f"{n} frames, {counts[LOST]} lost, {counts[RELOCALISED]} relocalised, {n / seconds:.1f} frames/s"
+               + (f" -> {out}" if out is not None else ""))
 
 
 @app.command()

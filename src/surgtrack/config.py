@@ -56,7 +56,7 @@ class GraphConfig:
     w_s: float = 1.0  # weight of L_SDF, once the field has converged
     huber_delta: float = 0.005  # m
     iterations: int = 7
-    depth_downscale: int = 4  # projective association on depth downscaled by this factor (at 640 px width)
+    depth_downscale: int = 2  # projective association on depth downscaled by this factor (at 640 px width)
     assoc_dist: float = 0.02  # m gate of projective association
     assoc_normal_deg: float = 45.0
     adjacent: int = 2  # adjacent (previous) frames always in the graph
@@ -69,6 +69,7 @@ class FailureConfig:
     """Lost-instrument detection (Stage 2, step 5)."""
 
     min_pixels: int = 150  # fewer instrument pixels with valid depth: lost
+    min_global_overlap: float = 0.6  # re-localisation by FPFH registration must explain this fraction of points
     relocalise_window: int = 15  # frames after a loss in which re-acquisition from the last pose is also tried
     min_confidence: float = 0.25
 
@@ -94,6 +95,11 @@ class SDFConfig:
     samples_per_ray: int = 8  # samples in the truncation band per instrument ray, along the box per other ray
     ray_stride: int = 2  # non-instrument pixels are taken on this pixel stride (instrument pixels: all)
     converged_tol: float = 0.05  # converged: the loss fell by less than this fraction over the last quarter of a fit
+    refit_every: int = 3  # keyframes added between background refits
+    max_views: int = 12  # keyframes (evenly spread over the pool) an incremental refit uses; the final fit uses all
+    refit_iterations: int = 60  # Adam steps of a warm-started incremental refit
+    min_keyframes: int = 4  # L_SDF joins the posture graph once the field is converged on at least this many
+    background: bool = True  # refit on a worker thread (tracking never waits); False refits in line (reproducible)
 
 
 @dataclass

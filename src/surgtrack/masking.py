@@ -25,6 +25,7 @@ def render_depth(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, shape:
     np.minimum.at(depth, (v, u), z.astype(np.float32))
     if splat > 0:
         depth = -cv2.dilate(-depth, np.ones((2 * splat + 1,) * 2, np.uint8))  # min filter
+    depth[depth >= np.finfo(np.float32).max] = 0  # the min filter pads the border with float32 max
     depth[~np.isfinite(depth)] = 0
     return depth
 

@@ -15,16 +15,22 @@ from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
+import trimesh
+from scipy.spatial import cKDTree
 
 from .config import TrackerConfig
 from .features import FeatureExtractor, Features, match
 from .geometry import backproject, inv_T, make_T, orthonormalize, transform, voxel_downsample
+from .global_registration import global_register
 from .io import Frame
 from .masking import predict_mask
 from .memory_pool import Keyframe, MemoryPool
+from .model import InstrumentModel
 from .posture_graph import FeatureEdge, GraphNode, optimize_graph
 from .preprocess import Observation, preprocess
 from .ransac import plausible, ransac_pose
+from .registration import BackgroundFitter, InstrumentSDF
+from .tsdf import View
 
 TRACKED, LOST, RELOCALISED = "tracked", "lost", "relocalised"
 
@@ -78,7 +84,7 @@ def object_origin(points: np.ndarray) -> np.ndarray:
 class SurgTracker:
     """Model-free 6-DoF tracker of one instrument."""
 
-    def __init__(self, config: TrackerConfig | None = None):
+    def __init__(self, config: TrackerConfig | None = None, model: InstrumentModel | None = None):
         self.cfg = config or TrackerConfig()
         self.extractor = FeatureExtractor(self.cfg.ransac.features, self.cfg.ransac.max_keypoints)
         self.pool = MemoryPool(self.cfg.pool)
@@ -86,8 +92,19 @@ class SurgTracker:
         self.recent: deque[_Node] = deque(maxlen=max(self.cfg.graph.adjacent, 1))
         self.lost = False
         self.frames_lost = 0
-        self.sdf = None  # callable points_obj -> (psi, grad) once the instrument SDF has converged
+        self.sdf: InstrumentSDF | None = None  # the converged field the posture graph uses (L_SDF, eq. 11)
+        self.fitter: BackgroundFitter | None = None
+        self._field: InstrumentSDF | None = None  # the field refitted in line when there is no background fitter
         self.model_points: np.ndarray | None = None  # the keyframes' points in the object frame
+        self._model_tree: cKDTree | None = None
+        self.model = model
+        if model is not None:
+            for kf in model.keyframes:
+                self.pool.keyframes.append(kf)
+                self._remember_points(kf)
+            if model.sdf is not None and self.cfg.sdf.enabled:
+                self._field = self.sdf = model.sdf
+                self.fitter = BackgroundFitter(model.sdf, num_threads=1) if self.cfg.sdf.background else None
 
     # ----------------------------------------------------------------------------------------------- public API
 
@@ -99,16 +116,64 @@ class SurgTracker:
                 f"frame {frame.id}: only {obs.n_valid} instrument pixels with valid depth in the first mask "
                 f"(need {self.cfg.failure.min_pixels})"
             )
+        if self.model is not None:
+            return self._register_to_model(obs)
         pts, _ = backproject(frame.depth, frame.K, mask)  # the whole masked cloud, not the filtered subset
         pose = make_T(np.eye(3), object_origin(pts))
+        if self.cfg.sdf.enabled:
+            # The box covers what the first frame shows, with room for parts seen later; per axis keeps it small.
+            extent = np.clip(1.5 * np.ptp(pts, axis=0) + 0.04, 0.08, 0.6)
+            self._field = InstrumentSDF(self.cfg.sdf, np.zeros(3), extent)
+            self.fitter = (BackgroundFitter(self._field, self.cfg.sdf.refit_iterations, num_threads=1)
+                           if self.cfg.sdf.background else None)
         node = self._node(obs, self.extractor(obs), pose)
         self.recent.append(node)
         self._add_keyframe(node, obs)
         return pose
 
+    def _register_to_model(self, obs: Observation) -> np.ndarray:
+        """First pose against a registered model: feature RANSAC with its keyframes, else FPFH registration of
+        the masked cloud, refined by the posture graph; the object frame is the model's."""
+        feats = self.extractor(obs)
+        best = None
+        for kf in self.pool.keyframes:
+            pair = self._matches(kf, feats)
+            if pair is not None and (best is None or len(pair[1]) > len(best[1][1])):
+                best = (kf, pair)
+        if best is not None:
+            pose, edges = best[1][0] @ best[0].pose, [(best[0], *best[1][1:])]
+        else:
+            pose, _ = global_register(obs.points()[0], self.model_points, seed=self.cfg.seed)
+            edges = []
+            if pose is None:
+                raise ValueError(f"frame {obs.frame.id}: too few instrument points to find the model")
+        node = self._node(obs, feats, orthonormalize(pose))
+        node.pose = orthonormalize(self._optimise(node, edges))
+        if self._confidence(node) < self.cfg.failure.min_global_overlap:
+            raise ValueError(f"frame {obs.frame.id}: the model's instrument was not found inside the first mask")
+        self.recent.append(node)
+        return node.pose
+
+    def mesh(self) -> trimesh.Trimesh | None:
+        """The reconstructed instrument (object frame, metres): a full fit on every keyframe, warm-started from the
+        latest field, then marching cubes."""
+        if not self.cfg.sdf.enabled or not self.pool.keyframes:
+            return None
+        psi = self._field
+        if self.fitter is not None:
+            self.fitter.close()
+            if self.fitter.error is not None:
+                raise self.fitter.error
+            psi = self.fitter.latest() or psi
+        psi = psi.copy()
+        psi.refit(self._views())
+        self._field = psi
+        return psi.mesh()
+
     def track(self, frame: Frame, mask: np.ndarray | None = None) -> TrackResult:
         """One tracking step (Stage 2): preprocess, coarse pose (eq. 4), posture graph (eqs. 6-11), memory (eq. 5)."""
         clock = _Clock()
+        self._update_sdf()
         if mask is None:
             mask = self._predicted_mask(frame)
         obs = preprocess(frame, mask, self.cfg.preprocess)
@@ -117,7 +182,7 @@ class SurgTracker:
             return self._lose(clock)
         feats = self.extractor(obs)
         clock.lap("features")
-        coarse = self._coarse_pose(feats)
+        coarse = self._coarse_pose(obs, feats)
         clock.lap("ransac")
         if coarse is None:
             return self._lose(clock)
@@ -145,20 +210,27 @@ class SurgTracker:
         xyz, nrm, K = obs.grid(factor)
         return _Node(obs.frame.id, pose, feats, xyz, nrm, K)
 
-    def _pair(self, ref: _Node | Keyframe, feats: Features) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-        """RANSAC (eq. 4) between a reference node's features and the current ones: (T_ref_to_cur, ref, cur)."""
+    def _matches(self, ref: _Node | Keyframe, feats: Features,
+                 pose: np.ndarray | None = None) -> tuple[np.ndarray | None, np.ndarray, np.ndarray] | None:
+        """Feature correspondences with a reference frame as (T_ref_to_cur, ref points, current points): RANSAC
+        inliers (eq. 4), or, when RANSAC finds none and a pose estimate is given, the matches that agree with it
+        (within twice the RANSAC threshold; T is then None)."""
         ia, ib = match(ref.features, feats, self.extractor.norm, self.cfg.ransac.ratio_test)
         if len(ia) < self.cfg.ransac.min_inliers:
             return None
         src, dst = ref.features.subset(ia), feats.subset(ib)
         res = ransac_pose(src.xyz, dst.xyz, self.cfg.ransac, self.rng, src.normals, dst.normals)
-        if res.T is None:
+        if res.T is not None:
+            return res.T, src.xyz[res.inliers], dst.xyz[res.inliers]
+        if pose is None:
             return None
-        return res.T, src.xyz[res.inliers], dst.xyz[res.inliers]
+        pred = transform(pose @ inv_T(ref.pose), src.xyz)
+        ok = np.linalg.norm(pred - dst.xyz, axis=1) < 2 * self.cfg.ransac.inlier_dist
+        return (None, src.xyz[ok], dst.xyz[ok]) if ok.sum() >= self.cfg.ransac.min_inliers else None
 
-    def _coarse_pose(self, feats: Features) -> tuple[np.ndarray, list[tuple[_Node | Keyframe, np.ndarray,
-                                                                                np.ndarray]], int] | None:
-        """Coarse pose from the last tracked frame, else from the memory pool (re-localisation)."""
+    def _coarse_pose(self, obs: Observation, feats: Features) -> tuple[np.ndarray, list[tuple], int] | None:
+        """Coarse pose (eq. 4) from the last tracked frame, else from the memory pool; after a loss also by
+        geometric registration against the model (re-localisation)."""
         refs: list[_Node | Keyframe] = []
         if not self.lost:
             refs.append(self.recent[-1])
@@ -168,7 +240,7 @@ class SurgTracker:
         if self.lost:  # keyframes outside the last view too: the instrument may reappear anywhere
             refs += [k for k in self.pool.keyframes if k not in refs]
         for ref in refs:
-            pair = self._pair(ref, feats)
+            pair = self._matches(ref, feats)
             if pair is None:
                 continue
             T, p_ref, p_cur = pair
@@ -176,13 +248,18 @@ class SurgTracker:
             if not self.lost and not plausible(pose @ inv_T(last), self.cfg.ransac):
                 continue
             return pose, [(ref, p_ref, p_cur)], len(p_ref)
+        if self.lost and self.model_points is not None:
+            pts, _ = obs.points()
+            pose, explained = global_register(pts, self.model_points, seed=self.cfg.seed)
+            if pose is not None and explained >= self.cfg.failure.min_global_overlap:
+                return pose, [], 0
         if not self.cfg.graph.enabled or self.frames_lost > self.cfg.failure.relocalise_window:
             return None
         # Too little texture for features: predict (constant velocity, or the last pose after a loss) and let the
         # graph's geometry (L_2D) and the matches that agree with the prediction align it.
         pose = self._predicted_pose()
-        pair = self._verified_matches(self.recent[-1], pose, feats)
-        return pose, [] if pair is None else [(self.recent[-1], *pair)], 0
+        pair = None if self.lost else self._matches(self.recent[-1], feats, pose)
+        return pose, [] if pair is None else [(self.recent[-1], *pair[1:])], 0
 
     def _predicted_pose(self) -> np.ndarray:
         """Constant-velocity prediction from the last two tracked frames."""
@@ -200,65 +277,60 @@ class SurgTracker:
         if self.cfg.pool.enabled:
             seen = {o.frame_id for o in others}
             for kf in self.pool.select(node.pose, self.cfg.pool.K, exclude=seen):
-                pair = self._verified_matches(kf, node.pose, node.features)
+                pair = self._matches(kf, node.features, node.pose)
                 others.append(kf)
                 if pair is not None:
-                    edges.append((kf, *pair))
+                    edges.append((kf, *pair[1:]))
         nodes = [node.graph_node(fixed=False)]
         nodes += [GraphNode(o.pose, o.xyz, o.normals, o.K_grid, True) for o in others]
         index = {id(o): i + 1 for i, o in enumerate(others)}
         graph_edges = [FeatureEdge(0, index[id(ref)], p_cur, p_ref) for ref, p_ref, p_cur in edges]
-        use_sdf = self.sdf is not None and self.cfg.sdf.enabled
+        use_sdf = self.sdf is not None
         pairs = [p for j in range(1, len(nodes)) for p in ((0, j), (j, 0))]  # the other poses are fixed
         poses = optimize_graph(nodes, graph_edges, self.cfg.graph, self.sdf if use_sdf else None,
                                [0] if use_sdf else [], pairs_2d=pairs)
         return poses[0]
 
-    def _verified_matches(self, ref: _Node | Keyframe, pose: np.ndarray,
-                          feats: Features) -> tuple[np.ndarray, np.ndarray] | None:
-        """Matches with a reference frame that agree with a pose estimate (within twice the RANSAC threshold)."""
-        ia, ib = match(ref.features, feats, self.extractor.norm, self.cfg.ransac.ratio_test)
-        if len(ia) == 0:
-            return None
-        p_kf, p_cur = ref.features.xyz[ia], feats.xyz[ib]
-        pred = transform(pose @ inv_T(ref.pose), p_kf)
-        ok = np.linalg.norm(pred - p_cur, axis=1) < 2 * self.cfg.ransac.inlier_dist
-        if ok.sum() < self.cfg.ransac.min_inliers:
-            return None
-        return p_kf[ok], p_cur[ok]
-
     def _confidence(self, node: _Node) -> float:
-        """Fraction of the frame's points that land within assoc_dist of a reference frame's surface: the last
-        tracked frame or the nearest keyframes, whichever sees the most of them."""
+        """Fraction of the frame's points (object frame) within assoc_dist of the model built so far."""
         pts = node.xyz[node.xyz[..., 2] > 0]
-        if len(pts) == 0:
+        if len(pts) == 0 or self._model_tree is None:
             return 0.0
-        refs = [self.recent[-1], *self.pool.select(node.pose, 2)]
-        return max(self._overlap(node.pose, pts, ref) for ref in refs)
-
-    def _overlap(self, pose: np.ndarray, pts: np.ndarray, ref: _Node | Keyframe) -> float:
-        q = transform(ref.pose @ inv_T(pose), pts)
-        h, w = ref.xyz.shape[:2]
-        K = ref.K_grid
-        z = np.maximum(q[:, 2], 1e-6)
-        u = np.round(K[0, 0] * q[:, 0] / z + K[0, 2]).astype(int)
-        v = np.round(K[1, 1] * q[:, 1] / z + K[1, 2]).astype(int)
-        inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        target = ref.xyz[v[inside], u[inside]]
-        seen = target[:, 2] > 0
-        if seen.sum() < 5:
-            return 0.0
-        close = np.linalg.norm(q[inside][seen] - target[seen], axis=1) < self.cfg.graph.assoc_dist
-        return float(close.mean())
+        dist, _ = self._model_tree.query(transform(inv_T(node.pose), pts), distance_upper_bound=1.0)
+        return float(np.mean(dist < self.cfg.graph.assoc_dist))
 
     def _add_keyframe(self, node: _Node, obs: Observation) -> None:
         kf = Keyframe(node.frame_id, node.pose, node.features, node.xyz, node.normals, node.K_grid,
-                      obs.depth, obs.valid, obs.K)
+                      obs.frame.depth, obs.mask, obs.K)
         self.pool.add(kf)
-        pts = transform(inv_T(node.pose), node.xyz[node.xyz[..., 2] > 0])
+        self._remember_points(kf)
+        if (len(self.pool) - 1) % self.cfg.sdf.refit_every:
+            return
+        views = self._views(self.cfg.sdf.max_views)
+        if self.fitter is not None:
+            self.fitter.submit(views)
+        elif self._field is not None:
+            self._field.refit(views, self.cfg.sdf.refit_iterations if self._field.fitted else None)
+
+    def _remember_points(self, kf: Keyframe) -> None:
+        pts = transform(inv_T(kf.pose), kf.xyz[kf.xyz[..., 2] > 0])
         if self.model_points is not None:
             pts = np.concatenate([self.model_points, pts])
         self.model_points = voxel_downsample(pts, 0.002)
+        self._model_tree = cKDTree(self.model_points)
+
+    def _views(self, n: int | None = None) -> list[View]:
+        """The keyframes as SDF views; with ``n``, at most n of them spread evenly over the pool."""
+        kfs = self.pool.keyframes
+        if n is not None and len(kfs) > n:
+            kfs = [kfs[i] for i in np.linspace(0, len(kfs) - 1, n).round().astype(int)]
+        return [View(k.depth, k.mask, k.K, k.pose) for k in kfs]
+
+    def _update_sdf(self) -> None:
+        """Swap in the newest converged field; never waits for a fit in progress."""
+        psi = self.fitter.latest() if self.fitter is not None else self._field
+        if psi is not None and psi.converged and len(self.pool) >= self.cfg.sdf.min_keyframes:
+            self.sdf = psi
 
     def _predicted_mask(self, frame: Frame) -> np.ndarray:
         """No mask given: render the keyframes' points at the last pose and keep depth-consistent pixels."""

@@ -1,0 +1,50 @@
+"""Geometric global registration of a frame's instrument points against the model (FPFH + RANSAC, then ICP).
+
+Used where texture is too weak for feature re-localisation, and to find the first pose against a registered model.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+from scipy.spatial import cKDTree
+
+from .geometry import transform
+
+
+def _cloud(points: np.ndarray, voxel: float) -> tuple[o3d.geometry.PointCloud, o3d.pipelines.registration.Feature]:
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
+    pcd = pcd.voxel_down_sample(voxel)
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2.5 * voxel, max_nn=30))
+    fpfh = o3d.pipelines.registration.compute_fpfh_feature(
+        pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel, max_nn=100))
+    return pcd, fpfh
+
+
+def overlap(model_tree: cKDTree, pose: np.ndarray, points_cam: np.ndarray, dist: float) -> float:
+    """Fraction of camera-frame points within ``dist`` of the model placed at ``pose``."""
+    d, _ = model_tree.query(transform(np.linalg.inv(pose), points_cam), distance_upper_bound=dist)
+    return float(np.mean(np.isfinite(d)))
+
+
+def global_register(points_cam: np.ndarray, model_obj: np.ndarray, voxel: float = 0.004, seed: int = 0,
+                    iterations: int = 50_000) -> tuple[np.ndarray | None, float]:
+    """Pose (object-to-camera) that lays the model on the frame's points, and the fraction of those points it
+    explains (within 2 voxels); (None, 0) when too few points."""
+    if len(points_cam) < 30 or len(model_obj) < 30:
+        return None, 0.0
+    o3d.utility.random.seed(seed)
+    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+    reg = o3d.pipelines.registration
+    src, src_f = _cloud(model_obj, voxel)
+    dst, dst_f = _cloud(points_cam, voxel)
+    if len(src.points) < 10 or len(dst.points) < 10:
+        return None, 0.0
+    gate = 2.0 * voxel
+    coarse = reg.registration_ransac_based_on_feature_matching(
+        src, dst, src_f, dst_f, True, gate, reg.TransformationEstimationPointToPoint(False), 3,
+        [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(gate)],
+        reg.RANSACConvergenceCriteria(iterations, 0.999))
+    fine = reg.registration_icp(src, dst, gate, coarse.transformation, reg.TransformationEstimationPointToPlane())
+    pose = np.asarray(fine.transformation)
+    return pose, overlap(cKDTree(np.asarray(src.points)), pose, np.asarray(dst.points), gate)

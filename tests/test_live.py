@@ -1,0 +1,297 @@
+"""Live workflow: RealSense recording and playback, box-to-mask rule, OpenIGTLink streaming, ``surgtrack live``
+and ``surgtrack track --video``."""
+
+from __future__ import annotations
+
+import json
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pyigtl
+import pytest
+from click.testing import Result
+from typer.testing import CliRunner
+
+from surgtrack.cli import app
+from surgtrack.config import TrackerConfig
+from surgtrack.igtl import PoseStreamer, pose_to_igtl
+from surgtrack.io import open_sequence, read_poses
+from surgtrack.pipeline import track_sequence
+from surgtrack.realsense import RealSenseError, RealSenseSource, box_mask, parse_box, record_sequence
+from surgtrack.tracker import LOST, TrackResult
+
+SURGTRACK = Path(sys.executable).with_name("surgtrack")
+
+
+def surgtrack(*args: str | Path) -> subprocess.CompletedProcess:
+    if not SURGTRACK.is_file():
+        pytest.fail(f"{SURGTRACK}: the surgtrack entry point is not installed beside the interpreter")
+    return subprocess.run([str(SURGTRACK), *map(str, args)], capture_output=True, text=True, timeout=120)
+
+
+def cli(*args: str | Path) -> Result:
+    """Run a command in this process (the error paths and the short runs; the entry point is tested above)."""
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+def assert_one_line_error(run: Result, *fragments: str) -> None:
+    assert run.exit_code == 2, run.output
+    lines = run.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("surgtrack: error: "), run.stderr
+    assert "Traceback" not in run.output
+    for f in fragments:
+        assert f in lines[0], lines[0]
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_connected(streamer: PoseStreamer, timeout: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not streamer.connected and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert streamer.connected, "the OpenIGTLink client did not connect"
+
+
+def count_video_frames(path: Path) -> tuple[int, int, int]:
+    cap = cv2.VideoCapture(str(path))
+    assert cap.isOpened(), path
+    n = 0
+    while cap.read()[0]:
+        n += 1
+    size = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+    cap.release()
+    return n, *size
+
+
+@pytest.fixture(scope="module")
+def recording(synth_seq: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("rec") / "synth.db3"
+    assert record_sequence(synth_seq, path) == len(open_sequence(synth_seq))
+    return path
+
+
+@pytest.fixture(scope="module")
+def fast_config(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Tracker config without the instrument SDF: these tests check the live plumbing, not the reconstruction."""
+    cfg = TrackerConfig()
+    cfg.sdf.enabled = False
+    path = tmp_path_factory.mktemp("cfg") / "config.json"
+    path.write_text(json.dumps(cfg.to_dict()))
+    return path
+
+
+@pytest.fixture(scope="module")
+def live_run(recording: Path, synth_seq: Path, fast_config: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """``surgtrack live --file REC --mask M --out OUT --video V`` with an OpenIGTLink client listening throughout."""
+    work = tmp_path_factory.mktemp("live")
+    port = free_port()
+    client = pyigtl.OpenIGTLinkClient(host="127.0.0.1", port=port)
+    try:
+        run = surgtrack("live", "--file", recording, "--mask", synth_seq / "masks" / "000000.png", "--out",
+                        work / "out", "--video", work / "overlay.mp4", "--igtl-port", port, "--config", fast_config)
+        last_transform = client.wait_for_message("InstrumentToCamera", timeout=5)
+        last_status = client.wait_for_message("TrackingStatus", timeout=5)
+    finally:
+        client.stop()
+    return {"run": run, "out": work / "out", "video": work / "overlay.mp4", "transform": last_transform,
+            "status": last_status}
+
+
+# ------------------------------------------------------------------------------------------- RealSense file
+
+
+def test_recording_plays_back_frame_by_frame(recording: Path, synth_seq: Path):
+    seq = open_sequence(synth_seq)
+    n = 0
+    with RealSenseSource(file=recording) as source:
+        assert source.depth_scale == pytest.approx(0.001, rel=1e-6)
+        assert source.size == (320, 240)
+        np.testing.assert_allclose(source.K, seq.K, rtol=1e-6)
+        for frame in source:
+            ref = seq[n]
+            assert frame.index == n and frame.id == f"{n:06d}"
+            np.testing.assert_allclose(frame.K, seq.K, rtol=1e-6)
+            assert frame.rgb.shape == ref.rgb.shape and frame.rgb.dtype == np.uint8
+            assert frame.depth.shape == ref.depth.shape and frame.depth.dtype == np.float32
+            np.testing.assert_array_equal(frame.rgb, ref.rgb)
+            assert np.abs(frame.depth - ref.depth).max() <= 0.001
+            n += 1
+    assert n == len(seq)
+
+
+def test_forced_alignment_keeps_the_geometry(recording: Path, synth_seq: Path):
+    ref = open_sequence(synth_seq)[0]
+    with RealSenseSource(file=recording, align=True) as source:
+        frame = next(iter(source))
+    both = (frame.depth > 0) & (ref.depth > 0)
+    assert both.sum() >= 0.9 * (ref.depth > 0).sum()
+    # rs.align re-projects pixel footprints and may move a value by a pixel: compare with the nearest neighbour.
+    padded = np.pad(ref.depth, 1)
+    h, w = ref.depth.shape
+    shifted = np.stack([padded[1 + dy:1 + dy + h, 1 + dx:1 + dx + w] for dy in (-1, 0, 1) for dx in (-1, 0, 1)])
+    nearest = np.abs(shifted - frame.depth).min(axis=0)
+    assert np.quantile(nearest[both], 0.95) < 0.001
+
+
+def test_record_needs_a_db3_file(synth_seq: Path, tmp_path: Path):
+    with pytest.raises(RealSenseError, match=r"\.db3"):
+        record_sequence(synth_seq, tmp_path / "x.bag")
+    assert not (tmp_path / "x.bag").exists()
+
+
+def test_max_frames_records_a_prefix(synth_seq: Path, tmp_path: Path):
+    path = tmp_path / "short.db3"
+    assert record_sequence(synth_seq, path, max_frames=3) == 3
+    with RealSenseSource(file=path) as source:
+        assert len(list(source)) == 3
+
+
+# ------------------------------------------------------------------------------------------- box to mask
+
+
+def test_box_mask_follows_the_nearest_continuous_surface():
+    h, w = 120, 160
+    depth = np.full((h, w), 0.6, np.float32) + np.linspace(0, 0.02, w, dtype=np.float32)  # tilted table
+    bar = np.zeros((h, w), bool)
+    bar[50:62, 30:130] = True
+    depth[50:62, 30:130] = np.linspace(0.30, 0.40, 100, dtype=np.float32)  # a shaft tilted away over 10 cm
+    depth[55, 80] = 0.0  # a specular dropout on the shaft
+    depth[20:23, 40:43] = 0.10  # a speck in front of everything
+    other = np.zeros((h, w), bool)
+    other[80:100, 40:60] = True
+    depth[other] = 0.45  # a second, farther object, not touching the shaft
+    mask = box_mask(depth, (20, 10, 140, 110))
+    np.testing.assert_array_equal(mask, bar)
+
+
+def test_box_mask_on_a_synthetic_frame(synth_seq: Path):
+    frame = open_sequence(synth_seq)[0]
+    box = (190, 50, 270, 100)  # around the head of the endoscope, clear of the hand
+    mask = box_mask(frame.depth, box)
+    inside = np.zeros_like(mask)
+    inside[box[1]:box[3], box[0]:box[2]] = True
+    truth = frame.mask & inside
+    assert not (mask & ~inside).any()
+    assert (mask & truth).sum() / (mask | truth).sum() > 0.8
+    assert (mask & ~truth).sum() <= 0.01 * mask.sum()
+
+
+def test_box_mask_and_parse_box_errors():
+    depth = np.zeros((40, 40), np.float32)
+    with pytest.raises(ValueError, match="valid depth"):
+        box_mask(depth, (0, 0, 20, 20))
+    with pytest.raises(ValueError, match="empty"):
+        box_mask(depth + 0.5, (50, 50, 60, 60))
+    assert parse_box("1, 2,30,40") == (1, 2, 30, 40)
+    for bad in ["1,2,3", "a,b,c,d", ""]:
+        with pytest.raises(ValueError, match="x0,y0,x1,y1"):
+            parse_box(bad)
+
+
+# ------------------------------------------------------------------------------------------- OpenIGTLink
+
+
+def test_streams_tracked_poses_in_millimetres_and_lost_status(live_run: dict):
+    out = live_run["out"]
+    poses = read_poses(out / "ob_in_cam")
+    records = [json.loads(line) for line in (out / "track.jsonl").read_text().splitlines()]
+    records.append({"frame": "lost", "status": LOST})  # a lost frame after the tracked sequence
+    with PoseStreamer(port=0, device_name="Endoscope") as streamer:
+        client = pyigtl.OpenIGTLinkClient(host="127.0.0.1", port=streamer.port)
+        try:
+            wait_connected(streamer)
+            for rec in records:
+                pose = poses.get(rec["frame"])
+                assert streamer.send(TrackResult(pose, rec["status"], 1.0))
+                status = client.wait_for_message("TrackingStatus", timeout=5)
+                assert status is not None and status.string == rec["status"]
+                if pose is None:
+                    assert client.wait_for_message("Endoscope", timeout=0.3) is None
+                    continue
+                msg = client.wait_for_message("Endoscope", timeout=5)
+                assert msg is not None and msg.message_type == "TRANSFORM"
+                np.testing.assert_allclose(msg.matrix[:3, :3], pose[:3, :3], atol=1e-6)
+                np.testing.assert_allclose(msg.matrix[:3, 3], pose[:3, 3] * 1000.0, atol=1e-3)
+        finally:
+            client.stop()
+    assert streamer.sent == len(records)
+
+
+def test_streamer_sends_nothing_without_a_client_and_checks_names():
+    with PoseStreamer(port=0) as streamer:
+        assert not streamer.send(TrackResult(np.eye(4), "tracked", 1.0))
+    with pytest.raises(ValueError, match="20"):
+        PoseStreamer(port=0, device_name="InstrumentToCameraFrame")
+    T = np.eye(4)
+    T[:3, 3] = [0.01, -0.02, 0.3]
+    np.testing.assert_allclose(pose_to_igtl(T)[:3, 3], [10.0, -20.0, 300.0])
+
+
+# ------------------------------------------------------------------------------------------- commands
+
+
+def test_live_tracks_a_recording_and_streams(live_run: dict, synth_seq: Path, fast_config: Path, tmp_path: Path):
+    run, out = live_run["run"], live_run["out"]
+    assert run.returncode == 0, run.stdout + run.stderr
+    seq = open_sequence(synth_seq)
+    records = [json.loads(line) for line in (out / "track.jsonl").read_text().splitlines()]
+    assert [r["frame"] for r in records] == seq.ids
+    poses = read_poses(out / "ob_in_cam")
+    assert set(poses) == {r["frame"] for r in records if r["status"] != LOST}
+    assert len(poses) >= 0.8 * len(seq)
+    # The same frames read from the folder and tracked from the same first mask give the same poses (the inputs
+    # differ by float rounding only; later frames may diverge as tracking amplifies it).
+    track_sequence(seq, tmp_path, TrackerConfig.from_dict(json.loads(fast_config.read_text())), first_mask_only=True)
+    folder = read_poses(tmp_path / "ob_in_cam")
+    for k in seq.ids[:12]:
+        np.testing.assert_allclose(poses[k], folder[k], atol=1e-3)
+    last = max(poses)
+    assert live_run["transform"] is not None, "the client received no transform from surgtrack live"
+    np.testing.assert_allclose(live_run["transform"].matrix, pose_to_igtl(poses[last]), atol=1e-3)
+    assert live_run["status"].string == records[-1]["status"]
+    assert count_video_frames(live_run["video"]) == (len(seq), 320, 240)
+
+
+def test_live_with_a_box_starts_from_the_box_mask(recording: Path, fast_config: Path, tmp_path: Path):
+    run = cli("live", "--file", recording, "--box", "190,50,270,100", "--out", tmp_path, "--no-igtl",
+              "--max-frames", "3", "--config", fast_config)
+    assert run.exit_code == 0, run.output
+    records = (tmp_path / "track.jsonl").read_text().splitlines()
+    assert len(records) == 3
+    assert (tmp_path / "ob_in_cam" / "000000.txt").is_file()
+
+
+def test_live_errors_are_one_line(recording: Path, synth_seq: Path, tmp_path: Path):
+    mask = synth_seq / "masks" / "000000.png"
+    assert_one_line_error(cli("live", "--file", tmp_path / "none.db3", "--mask", mask, "--no-igtl"),
+                          "none.db3", "no such recording")
+    assert_one_line_error(cli("live", "--file", recording, "--no-igtl"), "--mask", "--box")
+    assert_one_line_error(cli("live", "--file", recording, "--box", "1,2,3", "--no-igtl"), "--box")
+    small = tmp_path / "small.png"
+    cv2.imwrite(str(small), np.full((10, 10), 255, np.uint8))
+    assert_one_line_error(cli("live", "--file", recording, "--mask", small, "--no-igtl"), "10x10", "320x240")
+
+
+def test_live_without_camera_or_file_is_a_one_line_error():
+    import pyrealsense2 as rs
+
+    if len(rs.context().query_devices()):
+        pytest.skip("a RealSense camera is connected")
+    assert_one_line_error(cli("live", "--box", "0,0,10,10", "--no-igtl"), "no RealSense camera")
+
+
+def test_track_writes_an_overlay_video(synth_seq: Path, fast_config: Path, tmp_path: Path):
+    video = tmp_path / "overlay.mp4"
+    run = cli("track", synth_seq, "--out", tmp_path / "out", "--video", video, "--config", fast_config)
+    assert run.exit_code == 0, run.output
+    assert count_video_frames(video) == (len(open_sequence(synth_seq)), 320, 240)
+    assert len(read_poses(tmp_path / "out" / "ob_in_cam")) >= 1
