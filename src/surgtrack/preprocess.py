@@ -99,13 +99,15 @@ def preprocess(frame: Frame, mask: np.ndarray, cfg: PreprocessConfig) -> Observa
         u, v = np.meshgrid(np.arange(cs.start, cs.stop), np.arange(rs.start, rs.stop))
         K = frame.K
         p = np.stack([(u - K[0, 2]) * d / K[0, 0], (v - K[1, 2]) * d / K[1, 1], d], axis=-1).astype(np.float32)
-        n = normals_from_xyz(p)
+        n = normals_from_xyz(p, cfg.normal_step)
         # A normal is trusted only where the neighbours it is made from have depth on the same surface.
+        k = cfg.normal_step
         dn = np.zeros_like(good)
-        dn[2:-2, 2:-2] = good[2:-2, 2:-2] & good[:-4, 2:-2] & good[4:, 2:-2] & good[2:-2, :-4] & good[2:-2, 4:]
-        step_ok = np.zeros_like(good)  # the four neighbours lie on the same surface (no depth jump)
-        step_ok[2:-2, 2:-2] = (np.abs(d[:-4, 2:-2] - d[4:, 2:-2]) < 0.02) & (np.abs(d[2:-2, :-4] - d[2:-2, 4:]) < 0.02)
-        dn &= step_ok
+        c = (slice(k, -k), slice(k, -k))
+        up, down, left, right = (slice(None, -2 * k), c[1]), (slice(2 * k, None), c[1]), (c[0], slice(None, -2 * k)), (
+            c[0], slice(2 * k, None))
+        dn[c] = good[c] & good[up] & good[down] & good[left] & good[right]
+        dn[c] &= (np.abs(d[up] - d[down]) < 0.02) & (np.abs(d[left] - d[right]) < 0.02)
         ray = p / np.maximum(np.linalg.norm(p, axis=-1, keepdims=True), 1e-9)
         cos = -np.sum(ray * n, axis=-1)
         ok = dn & (m > 0) & (cos > np.cos(np.radians(cfg.max_grazing_deg)))
