@@ -68,6 +68,7 @@ def test_no_graph_ablation_uses_ransac_only(synth_seq, tmp_path):
     seq = open_sequence(synth_seq)
     cfg = TrackerConfig()
     cfg.graph = replace(cfg.graph, enabled=False)
+    cfg.sdf = replace(cfg.sdf, enabled=False)
     summary = track_sequence(seq, tmp_path / "out", cfg)
     records = [json.loads(x) for x in (tmp_path / "out" / "track.jsonl").read_text().splitlines()]
     assert all("graph" not in r["ms"] for r in records)

@@ -67,7 +67,7 @@ class InstrumentModel:
     K: np.ndarray
     config: dict = field(default_factory=dict)
     mesh: trimesh.Trimesh | None = None  # marching cubes of the SDF, object frame, metres
-    info: dict = field(default_factory=dict)  # provenance: created_by, created, source, frames, ...
+    info: dict = field(default_factory=dict)  # provenance (source sequence, frames, ...); read_meta has the writer
 
     @classmethod
     def from_tracker(cls, tracker: Any, info: dict | None = None) -> InstrumentModel:
@@ -332,11 +332,11 @@ def _build(r: _Reader, meta: dict, device: str | None) -> InstrumentModel:
     if len(faces) and (faces.min() < 0 or faces.max() >= len(verts)):
         raise r.fail("corrupt surgtrack model: mesh faces index missing vertices")
     mesh = trimesh.Trimesh(verts.astype(np.float64), faces, process=False) if len(faces) else None
-    info = dict(meta.get("info") or {})
-    info.setdefault("created_by", meta.get("created_by"))
-    info.setdefault("created", meta.get("created"))
+    info = meta.get("info") or {}
+    if not isinstance(info, dict):
+        raise r.fail("corrupt surgtrack model: meta.json 'info' is not an object")
     K = _matrix(r, meta["K"], (3, 3), "K")
-    return InstrumentModel(keyframes, sdf, K, meta["config"], mesh, info)
+    return InstrumentModel(keyframes, sdf, K, meta["config"], mesh, dict(info))
 
 
 def _vector(reader: _Reader, value: Any) -> np.ndarray:

@@ -190,7 +190,7 @@ class SurgTracker:
         node = self._node(obs, feats, orthonormalize(pose))
         if self.cfg.graph.enabled:
             pose = node.pose = orthonormalize(self._optimise(node, edges))
-        clock.lap("graph")
+            clock.lap("graph")
         confidence = self._confidence(node)
         if confidence < self.cfg.failure.min_confidence:
             return self._lose(clock, confidence)
