@@ -216,7 +216,7 @@ def _load_model(path: Path, cfg):
     try:
         instrument_model.check_compatible(cfg)
     except ValueError as e:
-        fail(f"{path}: {e}")
+        fail(f"{path}: {e}; use --features {instrument_model.features}")
     return instrument_model
 
 

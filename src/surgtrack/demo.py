@@ -8,9 +8,11 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import open3d as o3d
+import trimesh
 
 from .config import TrackerConfig
-from .io import Frame, open_sequence
+from .io import Frame, open_sequence, read_poses
 from .metrics import evaluate
 from .overlay import OverlayVideo, draw_overlay
 from .pipeline import track_sequence
@@ -50,6 +52,7 @@ def run_demo(out: Path | str, spec: SynthSpec = DEMO_SPEC, first_mask_only: bool
                                  tracker=tracker)
     finally:
         video.close()
+    _mesh_comparison(out, seq)
     metrics = evaluate(out / "result", seq)
     (out / "result" / "metrics.json").write_text(json.dumps(metrics, indent=2))
     plots = plot_evaluation(metrics, out)
@@ -58,8 +61,42 @@ def run_demo(out: Path | str, spec: SynthSpec = DEMO_SPEC, first_mask_only: bool
     return {"summary": summary.to_dict(), "metrics": metrics, "report": out / "report.md"}
 
 
+def render_mesh(mesh: trimesh.Trimesh, pose: np.ndarray, K: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Grey Lambertian rendering (RGB uint8) of a mesh seen at ``pose`` (object-to-camera) by a pinhole camera."""
+    w, h = size
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
+                        o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))
+    rays = o3d.t.geometry.RaycastingScene.create_rays_pinhole(
+        o3d.core.Tensor(K), o3d.core.Tensor(pose), width_px=w, height_px=h)
+    hit = scene.cast_rays(rays)
+    normals = hit["primitive_normals"].numpy()
+    dirs = rays.numpy()[..., 3:]
+    dirs /= np.linalg.norm(dirs, axis=-1, keepdims=True)
+    shade = np.abs(np.sum(normals * dirs, axis=-1))
+    img = np.where(np.isfinite(hit["t_hit"].numpy()), 40 + 200 * shade, 255)
+    return np.repeat(img[..., None], 3, axis=-1).astype(np.uint8)
+
+
 def _f(x: float | None, digits: int = 2) -> str:
     return "-" if x is None else f"{x:.{digits}f}"
+
+
+def _mesh_comparison(out: Path, seq) -> Path | None:
+    """Reconstructed mesh beside the ground-truth model, both seen from the first camera."""
+    path = out / "result" / "mesh.ply"
+    gt = seq.gt_model()
+    if not path.exists() or gt is None:
+        return None
+    first = seq[0]
+    pose = read_poses(out / "result" / "ob_in_cam")[first.id]
+    gt_pose = seq.gt_poses()[first.id]
+    size = (first.depth.shape[1], first.depth.shape[0])
+    pair = np.hstack([render_mesh(trimesh.load(path, force="mesh"), pose, first.K, size),
+                      render_mesh(gt, gt_pose, first.K, size)])
+    png = out / "mesh_vs_gt.png"
+    cv2.imwrite(str(png), pair)
+    return png
 
 
 def _report(spec: SynthSpec, summary: dict, m: dict, plots: list[Path], stills: list[Path], out: Path,
@@ -94,6 +131,7 @@ def _report(spec: SynthSpec, summary: dict, m: dict, plots: list[Path], stills: 
     ]
     mesh = out / "result" / "mesh.ply"
     if mesh.exists():
-        lines += ["## Reconstruction", "", "`result/mesh.ply` (object frame, metres); ground truth: "
-                  "`sequence/gt/model.ply`.", ""]
+        lines += ["## Reconstruction", "", "Left: the reconstruction `result/mesh.ply` (object frame, metres); "
+                  "right: the ground-truth model `sequence/gt/model.ply`; both from the first camera.", "",
+                  "![mesh_vs_gt.png](mesh_vs_gt.png)", ""]
     return "\n".join(lines)

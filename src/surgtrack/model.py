@@ -100,8 +100,7 @@ class InstrumentModel:
         """Raise ValueError when a tracker with this config cannot match the model's keyframe descriptors."""
         wanted = config.ransac.features
         if self.features is not None and wanted != self.features:
-            raise ValueError(f"the model's keyframes have {self.features} features, the tracker is set to {wanted} "
-                             f"(use --features {self.features})")
+            raise ValueError(f"the model's keyframes have {self.features} features, the tracker is set to {wanted}")
 
 
 # ------------------------------------------------------------------------------------------------------- writing
