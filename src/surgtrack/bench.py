@@ -16,6 +16,7 @@ from .config import TrackerConfig
 from .io import open_sequence
 from .metrics import evaluate
 from .pipeline import track_sequence
+from .plots import plot_accuracy, plot_errors_over_time
 from .synth import SynthSpec, is_rendered, render_sequence, suite_specs
 from .tracker import SurgTracker
 
@@ -73,10 +74,13 @@ def run_bench(suite: str, methods: list[str], root: Path | str, short: bool = Fa
         if not is_rendered(spec, path):
             log(f"rendering {name} ({spec.frames} frames, {spec.width}x{spec.height})")
             render_sequence(spec, path)
+    errors: dict[str, dict[str, list]] = {}
+    first_seq: dict[str, dict] = {}
     for method in methods:
         if method not in METHODS:
             raise ValueError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
         per_seq = {}
+        errors[method] = {"ADD": [], "ADD-S": []}
         for name, _ in specs:
             seq = open_sequence(root / "data" / name)
             out = root / method / name
@@ -84,6 +88,10 @@ def run_bench(suite: str, methods: list[str], root: Path | str, short: bool = Fa
             tracker = make_tracker(method)
             summary = track_sequence(seq, out, tracker.cfg, first_mask_only, tracker=tracker)
             m = evaluate(out, seq)
+            errors[method]["ADD"] += list(m["errors"]["add"].values())
+            errors[method]["ADD-S"] += list(m["errors"]["add_s"].values())
+            if name == specs[0][0]:
+                first_seq[method] = m["errors"]["add"]
             per_seq[name] = {"add_s_auc": m["add_s_auc"], "add_auc": m["add_auc"], "cd_cm": m["cd_cm"],
                              "add_s_auc_full": m["add_s_auc_full"], "add_auc_full": m["add_auc_full"],
                              "lost": summary.lost, "frames": summary.frames, "fps": summary.fps,
@@ -92,6 +100,10 @@ def run_bench(suite: str, methods: list[str], root: Path | str, short: bool = Fa
                 f"lost {summary.lost:3d}  {summary.fps:5.1f} fps")
         results["methods"][method] = {"sequences": per_seq, **_mean(per_seq)}
     results["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    results["plots"] = [p.name for p in (
+        plot_accuracy({k: v["ADD"] for k, v in errors.items()}, root / "accuracy_add.png", "ADD"),
+        plot_accuracy({k: v["ADD-S"] for k, v in errors.items()}, root / "accuracy_add_s.png", "ADD-S"),
+        plot_errors_over_time(first_seq, root / f"errors_over_time_{specs[0][0]}.png", "ADD"))]
     (root / "bench.json").write_text(json.dumps(results, indent=2))
     (root / "bench.md").write_text(format_table(results))
     return results
@@ -129,4 +141,6 @@ def format_table(results: dict) -> str:
         cells = [f"{_fmt(r['sequences'][name]['add_s_auc'])} / {_fmt(r['sequences'][name]['add_auc'])}"
                  for r in results["methods"].values()]
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    lines += ["", f"Peak memory of the run: {results['peak_rss_mb']:.0f} MB.", "",
+              *[f"![{p}]({p})" for p in results.get("plots", [])]]
     return "\n".join(lines) + "\n"

@@ -1,0 +1,38 @@
+"""Benchmark plumbing: method switches, shortened suite sequences, the paper-style table."""
+
+from __future__ import annotations
+
+import pytest
+
+from surgtrack.bench import format_table, method_config, shorten
+from surgtrack.synth import SynthSpec
+
+
+def test_ablations_switch_one_component_each():
+    assert method_config("surgtrack").pool.enabled and method_config("surgtrack").graph.enabled
+    assert not method_config("no-memory-pool").pool.enabled
+    assert not method_config("no-graph").graph.enabled
+    assert not method_config("no-occ-surf").sdf.occ_surf
+    assert method_config("orb").ransac.features == "orb"
+    with pytest.raises(ValueError, match="unknown"):
+        method_config("bundlesdf")
+
+
+def test_shorten_scales_occlusion_and_fast_stretches():
+    spec = SynthSpec(frames=300, full_occlusions=((180, 20),), fast_segments=((60, 40),))
+    short = shorten(spec, 100)
+    assert short.frames == 100
+    assert short.full_occlusions == ((60, 7),)
+    assert short.fast_segments == ((20, 13),)
+
+
+def test_table_has_a_row_per_method_and_sequence():
+    seq = {"add_s_auc": 95.0, "add_auc": 90.0, "cd_cm": 0.4}
+    results = {"suite": "instrument3d", "first_mask_only": False, "peak_rss_mb": 500.0, "plots": ["a.png"],
+               "methods": {m: {"add_s_auc": 95.0, "add_auc": 90.0, "cd_cm": None, "fps": 12.0,
+                               "stage_ms": {"graph": 20.0}, "sequences": {"s1": seq, "s2": seq}}
+                           for m in ("surgtrack", "icp")}}
+    table = format_table(results)
+    assert "| surgtrack | 95.00 | 90.00 | - | 12.0 | graph 20.0 |" in table
+    assert "| s2 | 95.00 / 90.00 | 95.00 / 90.00 |" in table
+    assert "![a.png](a.png)" in table
