@@ -28,10 +28,12 @@ length, so occluders carve the shape as in a naive system.
 
 from __future__ import annotations
 
+import atexit
 import copy
 import json
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 
@@ -173,7 +175,8 @@ class InstrumentSDF:
         self.psi, self.weight = fuse_tsdf(views, self.grid, c.truncation, c.occ_surf, c.occ_dilate, self.device)
         self._host = None
 
-    def refit(self, views: list[View], iterations: int | None = None) -> dict:
+    def refit(self, views: list[View], iterations: int | None = None,
+              stop: Callable[[], bool] | None = None) -> dict:
         """Incremental refit: warm start from the current field, TSDF values only where nothing was observed yet."""
         if not self.fitted:
             self.init_tsdf(views)
@@ -183,7 +186,7 @@ class InstrumentSDF:
             new = (self.weight == 0) & (weight > 0)
             self.psi = torch.where(new, psi, self.psi)
             self.weight = torch.maximum(self.weight, weight)
-        return self.fit(views, iterations)
+        return self.fit(views, iterations, stop=stop)
 
     def _sample(self, vol: torch.Tensor, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Trilinear Psi / truncation at object-frame points (N, 3) and a mask of points inside the grid."""
@@ -283,7 +286,8 @@ class InstrumentSDF:
         out["total"] = c.alpha * out["occ"] + c.beta * out["surf"] + c.w_free * out["free"] + c.w_eik * out["eik"]
         return out
 
-    def fit(self, views: list[View], iterations: int | None = None, seed: int = 0) -> dict:
+    def fit(self, views: list[View], iterations: int | None = None, seed: int = 0,
+            stop: Callable[[], bool] | None = None) -> dict:
         """Adam on the grid values with L = alpha L_occ (eq. 2) + beta L_surf (eq. 3) + w_free L_free + w_eik L_eik.
 
         Starts from the current field (call `init_tsdf` first for a fresh fit). Returns the loss history (every
@@ -298,6 +302,8 @@ class InstrumentSDF:
         opt = torch.optim.Adam([param], lr=self.cfg.lr)
         history: dict[str, list[float]] = {k: [] for k in ("total", "surf", "occ", "free", "eik")}
         for _ in range(n_iter):
+            if stop is not None and stop():
+                break
             opt.zero_grad(set_to_none=True)
             losses = self._losses(param, rays, gen)
             losses["total"].backward()
@@ -477,6 +483,7 @@ class BackgroundFitter:
         self.last_report: dict | None = None
         self._thread = threading.Thread(target=self._run, name="sdf-fitter", daemon=True)
         self._thread.start()
+        atexit.register(self.close)  # a thread still inside torch when the interpreter exits aborts the process
 
     def submit(self, views: list[View]) -> None:
         """Queue a refit on these keyframes (non-blocking)."""
@@ -500,7 +507,7 @@ class BackgroundFitter:
             return self._cond.wait_for(lambda: not self.busy or self._stop, timeout=timeout)
 
     def close(self, wait: bool = False) -> None:
-        """Stop the worker (after the queued request when `wait`); a fit in progress completes first."""
+        """Stop the worker: after the queued request when `wait`, else at once (a fit in progress is dropped)."""
         if wait:
             self.wait()
         with self._cond:
@@ -508,6 +515,7 @@ class BackgroundFitter:
             self._pending = None
             self._cond.notify_all()
         self._thread.join()
+        atexit.unregister(self.close)
 
     def _run(self) -> None:
         while True:
@@ -519,7 +527,9 @@ class BackgroundFitter:
                 self._busy = True
             try:
                 work = self._base.copy()
-                self.last_report = work.refit(views, self._iterations)
+                self.last_report = work.refit(views, self._iterations, stop=lambda: self._stop)
+                if self._stop:
+                    return
                 self._base = work
                 self._latest = work
                 self.fits_done += 1
