@@ -51,6 +51,7 @@ class _Node:
     """A tracked frame as the graph and the pool see it."""
 
     frame_id: str
+    index: int
     pose: np.ndarray
     features: Features
     xyz: np.ndarray
@@ -208,7 +209,7 @@ class SurgTracker:
     def _node(self, obs: Observation, feats: Features, pose: np.ndarray) -> _Node:
         factor = max(1, round(self.cfg.graph.depth_downscale * obs.depth.shape[1] / 640))
         xyz, nrm, K = obs.grid(factor)
-        return _Node(obs.frame.id, pose, feats, xyz, nrm, K)
+        return _Node(obs.frame.id, obs.frame.index, pose, feats, xyz, nrm, K)
 
     def _matches(self, ref: _Node | Keyframe, feats: Features,
                  pose: np.ndarray | None = None) -> tuple[np.ndarray | None, np.ndarray, np.ndarray] | None:
@@ -262,8 +263,9 @@ class SurgTracker:
         return pose, [] if pair is None else [(self.recent[-1], *pair[1:])], 0
 
     def _predicted_pose(self) -> np.ndarray:
-        """Constant-velocity prediction from the last two tracked frames."""
-        if len(self.recent) < 2 or self.lost:
+        """Constant-velocity prediction from the last two tracked frames when they are consecutive (a gap, such
+        as a loss, gives no velocity), else the last pose."""
+        if len(self.recent) < 2 or self.lost or self.recent[-1].index - self.recent[-2].index != 1:
             return self.recent[-1].pose
         a, b = self.recent[-2].pose, self.recent[-1].pose
         return b @ inv_T(a) @ b
