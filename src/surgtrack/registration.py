@@ -41,6 +41,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 import trimesh
+from scipy.spatial import cKDTree
 from skimage import measure
 
 from .config import SDFConfig
@@ -146,6 +147,16 @@ def _plateaued(losses: list[float], tol: float) -> bool:
         return False
     last, prev = float(np.mean(losses[-q:])), float(np.mean(losses[-2 * q : -q]))
     return bool(prev > 0 and (prev - last) / prev < tol)
+
+
+def keep_near(mesh: trimesh.Trimesh, points: np.ndarray, dist: float) -> trimesh.Trimesh:
+    """The faces of a mesh whose centroids lie within ``dist`` of observed points: drops the surfaces the field
+    closes where nothing was seen (box walls, the far side) and keeps the reconstruction of what the video shows."""
+    if len(mesh.faces) == 0 or len(points) == 0:
+        return mesh
+    d, _ = cKDTree(points).query(mesh.triangles_center, distance_upper_bound=dist)
+    kept = mesh.submesh([np.nonzero(np.isfinite(d))[0]], append=True)
+    return kept if isinstance(kept, trimesh.Trimesh) else trimesh.Trimesh()
 
 
 class InstrumentSDF:

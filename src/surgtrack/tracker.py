@@ -29,7 +29,7 @@ from .model import InstrumentModel
 from .posture_graph import FeatureEdge, GraphNode, optimize_graph
 from .preprocess import Observation, preprocess
 from .ransac import plausible, ransac_pose
-from .registration import BackgroundFitter, InstrumentSDF
+from .registration import BackgroundFitter, InstrumentSDF, keep_near
 from .tsdf import View
 
 TRACKED, LOST, RELOCALISED = "tracked", "lost", "relocalised"
@@ -169,7 +169,7 @@ class SurgTracker:
         psi = psi.copy()
         psi.refit(self._views())
         self._field = psi
-        return psi.mesh()
+        return keep_near(psi.mesh(), self.model_points, 2 * self.cfg.sdf.voxel_size)
 
     def track(self, frame: Frame, mask: np.ndarray | None = None) -> TrackResult:
         """One tracking step (Stage 2): preprocess, coarse pose (eq. 5), posture graph (eqs. 7-11), memory (eq. 6)."""
