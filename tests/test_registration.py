@@ -281,3 +281,13 @@ def test_device_selection(monkeypatch) -> None:
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     assert pick_device(None).type == "cpu"
     assert InstrumentSDF(SDFConfig(), np.zeros(3), 0.05).device.type == "cpu"
+
+
+def test_keep_near_drops_surfaces_away_from_observed_points():
+    from surgtrack.registration import keep_near
+
+    box = trimesh.creation.box(extents=(0.1, 0.1, 0.1))
+    seen = np.array([[x, y, 0.05] for x in np.linspace(-0.05, 0.05, 11) for y in np.linspace(-0.05, 0.05, 11)])
+    kept = keep_near(box, seen, 0.01)
+    assert len(kept.faces) == 2  # the top face's two triangles
+    assert np.allclose(kept.triangles_center[:, 2], 0.05)
