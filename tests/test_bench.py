@@ -28,11 +28,11 @@ def test_shorten_scales_occlusion_and_fast_stretches():
 
 def test_table_has_a_row_per_method_and_sequence():
     seq = {"add_s_auc": 95.0, "add_auc": 90.0, "cd_cm": 0.4}
-    results = {"suite": "instrument3d", "first_mask_only": False, "peak_rss_mb": 500.0, "plots": ["a.png"],
-               "methods": {m: {"add_s_auc": 95.0, "add_auc": 90.0, "cd_cm": None, "fps": 12.0,
+    results = {"suite": "instrument3d", "first_mask_only": False, "plots": ["a.png"],
+               "methods": {m: {"add_s_auc": 95.0, "add_auc": 90.0, "cd_cm": None, "fps": 12.0, "peak_rss_mb": 500.0,
                                "stage_ms": {"graph": 20.0}, "sequences": {"s1": seq, "s2": seq}}
                            for m in ("surgtrack", "icp")}}
     table = format_table(results)
-    assert "| surgtrack | 95.00 | 90.00 | - | 12.0 | graph 20.0 |" in table
+    assert "| surgtrack | 95.00 | 90.00 | - | 12.0 | 500 | graph 20.0 |" in table
     assert "| s2 | 95.00 / 90.00 | 95.00 / 90.00 |" in table
     assert "![a.png](a.png)" in table
