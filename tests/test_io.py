@@ -350,3 +350,14 @@ def test_bop_scene_errors(tmp_path: Path):
     (scene / "scene_camera.json").write_text(json.dumps({"0": {"cam_K": [1, 2, 3]}}))
     with raises(scene / "scene_camera.json", "frame 0: cam_K missing or not 3x3"):
         open_sequence(scene, obj_id=5)
+
+
+def test_result_writer_replaces_an_earlier_runs_poses_and_mesh(tmp_path):
+    from surgtrack.io import ResultWriter, write_pose
+
+    write_pose(tmp_path / "ob_in_cam" / "000099.txt", np.eye(4))
+    (tmp_path / "mesh.ply").write_text("old")
+    with ResultWriter(tmp_path) as writer:
+        writer.write("000000", np.eye(4), {"status": "tracked"})
+    assert sorted(p.name for p in (tmp_path / "ob_in_cam").iterdir()) == ["000000.txt"]
+    assert not (tmp_path / "mesh.ply").exists()

@@ -31,6 +31,9 @@ class SequenceError(ValueError):
         self.path = Path(path)
         self.problem = problem
 
+    def __reduce__(self) -> tuple:
+        return (SequenceError, (self.path, self.problem))  # picklable across processes (bench runs methods apart)
+
 
 @dataclass
 class Frame:
@@ -450,6 +453,9 @@ class ResultWriter:
         self.out = Path(out)
         self.out.mkdir(parents=True, exist_ok=True)
         (self.out / "ob_in_cam").mkdir(exist_ok=True)
+        # A new run replaces an earlier run's result in the same folder, so no stale pose or mesh mixes in.
+        for stale in [*(self.out / "ob_in_cam").glob("*.txt"), self.out / "mesh.ply"]:
+            stale.unlink(missing_ok=True)
         self._log = open(self.out / "track.jsonl", "w")
 
     def write(self, frame_id: str, T: np.ndarray | None, record: dict) -> None:

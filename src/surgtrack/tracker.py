@@ -169,7 +169,8 @@ class SurgTracker:
         psi = psi.copy()
         psi.refit(self._views())
         self._field = psi
-        return keep_near(psi.mesh(), self.model_points, 2 * self.cfg.sdf.voxel_size)
+        mesh = keep_near(psi.mesh(), self.model_points, 2 * self.cfg.sdf.voxel_size)
+        return mesh if len(mesh.faces) else None
 
     def track(self, frame: Frame, mask: np.ndarray | None = None) -> TrackResult:
         """One tracking step (Stage 2): preprocess, coarse pose (eq. 5), posture graph (eqs. 7-11), memory (eq. 6)."""
@@ -188,7 +189,8 @@ class SurgTracker:
         if coarse is None:
             return self._lose(clock)
         pose, edges, inliers = coarse
-        node = self._node(obs, feats, orthonormalize(pose))
+        pose = orthonormalize(pose)  # chained estimates would otherwise drift off SO(3)
+        node = self._node(obs, feats, pose)
         if self.cfg.graph.enabled:
             pose = node.pose = orthonormalize(self._optimise(node, edges))
             clock.lap("graph")
