@@ -11,9 +11,10 @@ import cv2
 import numpy as np
 import pytest
 import trimesh
+from helpers import write_result
 
 from surgtrack.geometry import make_T, so3_exp
-from surgtrack.io import SequenceWriter, open_sequence, write_pose
+from surgtrack.io import SequenceWriter, open_sequence
 
 SURGTRACK = Path(sys.executable).with_name("surgtrack")
 APC_SCENE = "real/apc_shelf_scene/scene-0000"
@@ -36,14 +37,6 @@ def assert_one_line_error(run: subprocess.CompletedProcess, *fragments: str) -> 
 
 def shift(x: float, y: float, z: float) -> np.ndarray:
     return make_T(np.eye(3), [x, y, z])
-
-
-def write_result(out: Path, poses: dict[str, np.ndarray], mesh: trimesh.Trimesh | None = None) -> Path:
-    for k, T in poses.items():
-        write_pose(out / "ob_in_cam" / f"{k}.txt", T)
-    if mesh is not None:
-        mesh.export(out / "mesh.ply")
-    return out
 
 
 # ------------------------------------------------------------------------------------------------ real frames, BOP

@@ -7,9 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
+from helpers import write_result
 
 from surgtrack.geometry import make_T, so3_exp
-from surgtrack.io import SequenceError, SequenceWriter, open_sequence, write_pose
+from surgtrack.io import SequenceError, SequenceWriter, open_sequence
 from surgtrack.metrics import (
     add_errors,
     adds_errors,
@@ -43,14 +44,6 @@ def write_sequence(root: Path, poses: list[np.ndarray], mesh: trimesh.Trimesh, v
         w.write_frame(i, rgb, np.full((24, 32), 0.5), mask if i == 0 else None, T)
     w.write_model(mesh, visible)
     return open_sequence(root)
-
-
-def write_result(out: Path, poses: dict[str, np.ndarray], mesh: trimesh.Trimesh | None = None) -> Path:
-    for k, T in poses.items():
-        write_pose(out / "ob_in_cam" / f"{k}.txt", T)
-    if mesh is not None:
-        mesh.export(out / "mesh.ply")
-    return out
 
 
 def rot_z(deg: float) -> np.ndarray:
