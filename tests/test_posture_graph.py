@@ -244,3 +244,30 @@ def test_default_pairs():
     e = [FeatureEdge(0, 2, np.zeros((1, 3)), np.zeros((1, 3))), FeatureEdge(2, 0, np.zeros((1, 3)), np.zeros((1, 3)))]
     assert default_pairs(3, e) == [(0, 2), (2, 0)]
     assert default_pairs(3, []) == [(0, 1), (0, 2), (1, 0), (1, 2), (2, 0), (2, 1)]
+
+
+def test_motion_prior_is_weak_next_to_the_data():
+    radius = 0.05
+    T_gt = make_T(np.eye(3), np.array([0.01, -0.005, 0.3]))
+    xyz, nrm = render_sphere(T_gt, radius)
+    T0 = make_T(so3_exp(np.array([0.0, 0.3, 0.0])), T_gt[:3, 3] + np.array([0.008, -0.006, 0.01]))
+    node = GraphNode(pose=T0, xyz=xyz, normals=nrm, K=K.copy())
+
+    def sphere_sdf(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        r = np.linalg.norm(p, axis=1)
+        return r - radius, p / r[:, None]
+
+    out = optimize_graph([node], [], GraphConfig(), sdf=sphere_sdf, sdf_nodes=[0], priors=[(0, T0)])
+    # The data pin the centre (the prior costs a fraction of a millimetre); the sphere's rotation, which the data
+    # leave free, stays where the prior holds it.
+    assert np.linalg.norm(out[0][:3, 3] - T_gt[:3, 3]) < 5e-4
+    assert rotation_angle_deg(out[0][:3, :3].T @ T0[:3, :3]) < 0.01
+
+
+def test_motion_prior_alone_gives_the_prior():
+    T0 = make_T(np.eye(3), np.array([0.0, 0.0, 0.3]))
+    T1 = make_T(so3_exp(np.array([0.02, -0.01, 0.03])), np.array([0.004, -0.002, 0.303]))
+    empty = GraphNode(pose=T0, xyz=np.zeros(HW + (3,)), normals=np.zeros(HW + (3,)), K=K.copy())
+    out = optimize_graph([empty], [], GraphConfig(), priors=[(0, T1)])
+    assert np.allclose(out[0], T1, atol=1e-6)
+    assert np.allclose(optimize_graph([empty], [], GraphConfig(w_m=0.0), priors=[(0, T1)])[0], T0)

@@ -32,8 +32,8 @@ class RansacConfig:
     min_inliers: int = 5
     min_sample_spread: float = 0.002  # m; a 3-point sample whose triangle height is below this is degenerate
     refits: int = 2  # Kabsch refits on the inlier set after the best hypothesis
-    max_jump_trans: float = 0.15  # m between consecutive frames: beyond is physically implausible
-    max_jump_rot_deg: float = 60.0
+    max_jump_trans: float = 0.1  # m the instrument's origin moves between consecutive frames: beyond is implausible
+    max_jump_rot_deg: float = 30.0  # degrees the instrument turns between consecutive frames (900 deg/s at 30 fps)
 
 
 @dataclass
@@ -63,6 +63,8 @@ class GraphConfig:
     adjacent: int = 2  # adjacent (previous) frames always in the graph
     max_assoc_points: int = 2000  # per node, strided subsample of the valid grid points used by L_2D and L_SDF
     damping: float = 1e-4  # Levenberg-Marquardt-style damping, relative to the diagonal of the normal equations
+    w_m: float = 10.0  # weak prior on the current pose at its coarse estimate, in point residuals (not in the paper)
+    prior_lever: float = 0.02  # m: the prior weighs a rotation as the displacement of a point this far away
 
 
 @dataclass
@@ -72,6 +74,7 @@ class FailureConfig:
     min_pixels: int = 150  # fewer instrument pixels with valid depth: lost
     min_global_overlap: float = 0.6  # re-localisation by FPFH registration must explain this fraction of points
     relocalise_window: int = 15  # frames after a loss in which re-acquisition from the last pose is also tried
+    relocalise_candidates: int = 3  # keyframes whose feature RANSAC poses compete in re-localisation
     min_confidence: float = 0.25
 
 

@@ -46,5 +46,9 @@ def global_register(points_cam: np.ndarray, model_obj: np.ndarray, voxel: float 
         [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(gate)],
         reg.RANSACConvergenceCriteria(iterations, 0.999))
     fine = reg.registration_icp(src, dst, gate, coarse.transformation, reg.TransformationEstimationPointToPlane())
-    pose = np.asarray(fine.transformation)
-    return pose, overlap(cKDTree(np.asarray(src.points)), pose, np.asarray(dst.points), gate)
+    # Point-to-plane ICP can slide off a round shaft it cannot pin: keep whichever pose explains more.
+    tree, dst_pts = cKDTree(np.asarray(src.points)), np.asarray(dst.points)
+    scored = [(overlap(tree, T, dst_pts, gate), T) for T in (np.asarray(fine.transformation),
+                                                             np.asarray(coarse.transformation))]
+    explained, pose = max(scored, key=lambda s: s[0])
+    return pose.copy(), explained

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from surgtrack.config import GraphConfig
-from surgtrack.geometry import inv_T, se3_exp
+from surgtrack.geometry import inv_T, se3_exp, so3_log
 
 SDFFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
@@ -302,6 +302,7 @@ def optimize_graph(
     sdf: SDFFn | None = None,
     sdf_nodes: Sequence[int] = (),
     pairs_2d: Sequence[tuple[int, int]] | None = None,
+    priors: Sequence[tuple[int, np.ndarray]] = (),
 ) -> list[np.ndarray]:
     """Optimised 4x4 object-to-camera poses of ``nodes`` minimising the energy of eq. 8; fixed nodes are returned
     unchanged.
@@ -314,6 +315,10 @@ def optimize_graph(
       every iteration.
     - L_SDF (eq. 11): with ``sdf`` given, ``sdf(points_obj (N, 3)) -> (psi (N,), grad (N, 3))`` is evaluated at
       pose_t^-1 p for the points p of every node t in ``sdf_nodes``; residual psi, weight ``cfg.w_s``.
+    - Motion prior (not in the paper): for each ``(t, pose)`` in ``priors``, the residual log(C_t pose) (translation,
+      and rotation times ``cfg.prior_lever``) with weight ``cfg.w_m``, worth that many point residuals. It is weak
+      next to the data and keeps directions the data leave free (roll about a round shaft, a slide along it) at
+      the coarse pose instead of letting them wander.
 
     Every residual goes through the Huber loss with ``cfg.huber_delta``; ``cfg.iterations`` re-weighted Gauss-Newton
     steps are taken (parametrisation in the module docstring). Without a fixed node the gauge is held only by the
@@ -378,6 +383,13 @@ def optimize_graph(
             Js[:, :3] = gr
             _cross(ys, gr, Js[:, 3:])
             ne.add(sdf_ids, Js, r, cfg.w_s * huber_weight(r, hd) * good)
+
+        for t, prior in priors:
+            if free[t] and cfg.w_m > 0:
+                E = C[t] @ prior  # C_t times the prior's pose: identity at the prior
+                W = cfg.w_m * np.diag([1.0, 1.0, 1.0] + [cfg.prior_lever**2] * 3)
+                ne.H[t, t] += W
+                ne.g[t] += W @ np.concatenate([E[:3, 3], so3_log(E[:3, :3])])
 
         step = ne.solve(free, cfg.damping)
         if not np.all(np.isfinite(step)):

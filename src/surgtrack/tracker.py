@@ -20,7 +20,15 @@ from scipy.spatial import cKDTree
 
 from .config import TrackerConfig
 from .features import FeatureExtractor, Features, match
-from .geometry import backproject, inv_T, make_T, orthonormalize, transform, voxel_downsample
+from .geometry import (
+    backproject,
+    inv_T,
+    make_T,
+    orthonormalize,
+    rotation_angle_deg,
+    transform,
+    voxel_downsample,
+)
 from .global_registration import global_register
 from .io import Frame
 from .masking import predict_mask
@@ -184,7 +192,7 @@ class SurgTracker:
             return self._lose(clock)
         feats = self.extractor(obs)
         clock.lap("features")
-        coarse = self._coarse_pose(obs, feats)
+        coarse = self._relocalise(obs, feats) if self.lost else self._coarse_pose(obs, feats)
         clock.lap("ransac")
         if coarse is None:
             return self._lose(clock)
@@ -232,37 +240,75 @@ class SurgTracker:
         return (None, src.xyz[ok], dst.xyz[ok]) if ok.sum() >= self.cfg.ransac.min_inliers else None
 
     def _coarse_pose(self, obs: Observation, feats: Features) -> tuple[np.ndarray, list[tuple], int] | None:
-        """Coarse pose (eq. 5) from the last tracked frame, else from the memory pool; after a loss also by
-        geometric registration against the model (re-localisation)."""
-        refs: list[_Node | Keyframe] = []
-        if not self.lost:
-            refs.append(self.recent[-1])
-        last = self.recent[-1].pose
-        pool = self.pool.select(last, len(self.pool)) if self.lost else self.pool.select(last, 3)
-        refs += [k for k in pool if k.frame_id != self.recent[-1].frame_id]
-        if self.lost:  # keyframes outside the last view too: the instrument may reappear anywhere
-            refs += [k for k in self.pool.keyframes if k not in refs]
+        """Coarse pose (eq. 5) from the last tracked frame, else from the memory pool; with too little texture, the
+        prediction for the graph's geometry to align."""
+        last = self.recent[-1]
+        refs = [last] + [k for k in self.pool.select(last.pose, 3) if k.frame_id != last.frame_id]
         for ref in refs:
             pair = self._matches(ref, feats)
             if pair is None:
                 continue
             T, p_ref, p_cur = pair
             pose = T @ ref.pose
-            if not self.lost and not plausible(pose @ inv_T(last), self.cfg.ransac):
-                continue
-            return pose, [(ref, p_ref, p_cur)], len(p_ref)
-        if self.lost and self.model_points is not None:
-            pts, _ = obs.points()
-            pose, explained = global_register(pts, self.model_points, seed=self.cfg.seed)
-            if pose is not None and explained >= self.cfg.failure.min_global_overlap:
-                return pose, [], 0
-        if not self.cfg.graph.enabled or self.frames_lost > self.cfg.failure.relocalise_window:
+            if self._plausible(pose):
+                return pose, [(ref, p_ref, p_cur)], len(p_ref)
+        if not self.cfg.graph.enabled:
             return None
-        # Too little texture for features: predict (constant velocity, or the last pose after a loss) and let the
-        # graph's geometry (L_2D) and the matches that agree with the prediction align it.
+        # Too little texture for features: predict (constant velocity) and let the graph's geometry (L_2D) and the
+        # matches that agree with the prediction align it.
         pose = self._predicted_pose()
-        pair = None if self.lost else self._matches(self.recent[-1], feats, pose)
-        return pose, [] if pair is None else [(self.recent[-1], *pair[1:])], 0
+        pair = self._matches(last, feats, pose)
+        return pose, [] if pair is None else [(last, *pair[1:])], 0
+
+    def _candidates(self, obs: Observation, feats: Features,
+                    last: np.ndarray) -> list[tuple[np.ndarray, list[tuple], int]]:
+        """Candidate poses after a loss: feature RANSAC (eq. 5) against the keyframes (those that saw the last
+        view first), FPFH registration against the model with a few seeds, and the last pose (listed last)."""
+        cands: list[tuple[np.ndarray, list[tuple], int]] = []
+        near = self.pool.select(last, len(self.pool))
+        for kf in near + [k for k in self.pool.keyframes if k not in near]:
+            pair = self._matches(kf, feats)
+            if pair is not None:
+                cands.append((pair[0] @ kf.pose, [(kf, *pair[1:])], len(pair[1])))
+                if len(cands) == self.cfg.failure.relocalise_candidates:
+                    break
+        if self.model_points is not None:
+            pts = obs.points()[0]
+            for k in range(self.cfg.failure.relocalise_candidates):
+                pose, explained = global_register(pts, self.model_points, seed=self.cfg.seed + k)
+                if pose is not None and explained >= self.cfg.failure.min_global_overlap:
+                    cands.append((pose, [], 0))
+        cands.append((last, [], 0))
+        return cands
+
+    def _best_candidate(self, obs: Observation, feats: Features, cands: list[tuple[np.ndarray, list[tuple], int]],
+                        last: np.ndarray) -> tuple[np.ndarray, list[tuple], int] | None:
+        """Refine each candidate by the posture graph and keep the one the model fits best (`_fit_error`); among
+        equally good fits, the least motion from ``last`` (a shaft slid along or rolled about its axis fits
+        equally well)."""
+        if not self.cfg.graph.enabled:
+            return cands[0] if cands else None
+        scored = []
+        for pose, edges, inliers in cands:
+            node = self._node(obs, feats, orthonormalize(pose))
+            node.pose = orthonormalize(self._optimise(node, list(edges)))
+            motion = inv_T(last) @ node.pose
+            move = np.linalg.norm(motion[:3, 3]) + 0.1 * np.radians(rotation_angle_deg(motion[:3, :3]))
+            scored.append((self._fit_error(node), move, (node.pose, edges, inliers)))
+        if not scored:
+            return None
+        best = min(s[0] for s in scored)
+        tied = [s for s in scored if s[0] <= 1.2 * best + 5e-4]
+        return min(tied, key=lambda s: (s[1], s[0]))[2]
+
+    def _relocalise(self, obs: Observation, feats: Features) -> tuple[np.ndarray, list[tuple], int] | None:
+        """Re-localisation after a loss (step 5) against the memory pool and the model; shortly after the loss the
+        last pose competes too."""
+        last = self.recent[-1].pose
+        cands = self._candidates(obs, feats, last)
+        if not self.cfg.graph.enabled or self.frames_lost > self.cfg.failure.relocalise_window:
+            cands = cands[:-1]
+        return self._best_candidate(obs, feats, cands, last)
 
     def _predicted_pose(self) -> np.ndarray:
         """Constant-velocity prediction from the last two tracked frames when they are consecutive (a gap, such
@@ -270,12 +316,19 @@ class SurgTracker:
         if len(self.recent) < 2 or self.lost or self.recent[-1].index - self.recent[-2].index != 1:
             return self.recent[-1].pose
         a, b = self.recent[-2].pose, self.recent[-1].pose
-        return b @ inv_T(a) @ b
+        pred = b @ inv_T(a) @ b
+        return pred if self._plausible(pred) else b
+
+    def _plausible(self, pose: np.ndarray) -> bool:
+        """Whether the motion from the last tracked pose to ``pose`` is within the physical bounds (step 5):
+        rotation of the instrument and displacement of its origin between consecutive frames."""
+        return plausible(inv_T(self.recent[-1].pose) @ pose, self.cfg.ransac)
 
     def _optimise(self, node: _Node, edges: list) -> np.ndarray:
         """Posture graph over the current frame, adjacent frames and K memory frames (eqs. 7-11); as in the paper
         (eq. 8) only the current pose xi_t is optimised, the other nodes are held fixed."""
         others: list[_Node | Keyframe] = [e[0] for e in edges]
+        prior = [] if edges else [(0, node.pose)]  # no features: keep weakly observed directions at the prediction
         for prev in reversed(self.recent):
             if prev not in others:
                 others.append(prev)
@@ -293,8 +346,17 @@ class SurgTracker:
         use_sdf = self.sdf is not None
         pairs = [p for j in range(1, len(nodes)) for p in ((0, j), (j, 0))]  # the other poses are fixed
         poses = optimize_graph(nodes, graph_edges, self.cfg.graph, self.sdf if use_sdf else None,
-                               [0] if use_sdf else [], pairs_2d=pairs)
+                               [0] if use_sdf else [], pairs_2d=pairs, priors=prior)
         return poses[0]
+
+    def _fit_error(self, node: _Node) -> float:
+        """Mean distance (m, capped at assoc_dist) of the frame's points, in the object frame, to the model."""
+        pts = node.xyz[node.xyz[..., 2] > 0]
+        if len(pts) == 0 or self._model_tree is None:
+            return float("inf")
+        cap = self.cfg.graph.assoc_dist
+        dist, _ = self._model_tree.query(transform(inv_T(node.pose), pts), distance_upper_bound=cap)
+        return float(np.mean(np.minimum(dist, cap)))
 
     def _confidence(self, node: _Node) -> float:
         """Fraction of the frame's points (object frame) within assoc_dist of the model built so far."""
