@@ -63,8 +63,9 @@ class GraphConfig:
     adjacent: int = 2  # adjacent (previous) frames always in the graph
     max_assoc_points: int = 2000  # per node, strided subsample of the valid grid points used by L_2D and L_SDF
     damping: float = 1e-4  # Levenberg-Marquardt-style damping, relative to the diagonal of the normal equations
-    w_m: float = 10.0  # weak prior on the current pose at its coarse estimate, in point residuals (not in the paper)
+    w_m: float = 10.0  # prior on the current pose where the data leave it free, in point residuals (not in the paper)
     prior_lever: float = 0.02  # m: the prior weighs a rotation as the displacement of a point this far away
+    prior_null: float = 0.05  # the prior acts along directions whose data information is below this of the largest
 
 
 @dataclass
@@ -74,7 +75,8 @@ class FailureConfig:
     min_pixels: int = 150  # fewer instrument pixels with valid depth: lost
     min_global_overlap: float = 0.6  # re-localisation by FPFH registration must explain this fraction of points
     relocalise_window: int = 15  # frames after a loss in which re-acquisition from the last pose is also tried
-    relocalise_candidates: int = 3  # keyframes whose feature RANSAC poses compete in re-localisation
+    relocalise_candidates: int = 3  # feature RANSAC poses (and FPFH seeds) that compete in re-localisation
+    relocalise_prior_null: float = 0.01  # graph.prior_null for re-localisation candidates (prior at the last pose)
     min_confidence: float = 0.25
 
 

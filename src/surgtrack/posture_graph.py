@@ -284,6 +284,16 @@ def _hat_rows(y: np.ndarray, sign: float) -> np.ndarray:
     return np.stack([np.stack([z, -y2, y1], 1), np.stack([y2, z, -y0], 1), np.stack([-y1, y0, z], 1)], 1)
 
 
+def _null_space_prior(H: np.ndarray, cfg: GraphConfig) -> np.ndarray:
+    """Information matrix of the motion prior: weight ``cfg.w_m`` along the directions the data's 6x6 block ``H``
+    leaves (nearly) free, eigenvalue below ``cfg.prior_null`` of the largest, and nothing along the others.
+    Rotations are compared with translations as the displacement of a point ``cfg.prior_lever`` away."""
+    D = np.array([1.0, 1.0, 1.0] + [cfg.prior_lever] * 3)
+    lam, V = np.linalg.eigh(H / np.outer(D, D))
+    weak = V[:, lam <= cfg.prior_null * max(float(lam[-1]), 1e-12)]
+    return cfg.w_m * (weak @ weak.T) * np.outer(D, D)
+
+
 def default_pairs(n: int, edges: Sequence[FeatureEdge]) -> list[tuple[int, int]]:
     """Directed node pairs for L_2D: both directions of every pair sharing a feature edge, or all i != j if none."""
     if not edges:
@@ -316,9 +326,9 @@ def optimize_graph(
     - L_SDF (eq. 11): with ``sdf`` given, ``sdf(points_obj (N, 3)) -> (psi (N,), grad (N, 3))`` is evaluated at
       pose_t^-1 p for the points p of every node t in ``sdf_nodes``; residual psi, weight ``cfg.w_s``.
     - Motion prior (not in the paper): for each ``(t, pose)`` in ``priors``, the residual log(C_t pose) (translation,
-      and rotation times ``cfg.prior_lever``) with weight ``cfg.w_m``, worth that many point residuals. It is weak
-      next to the data and keeps directions the data leave free (roll about a round shaft, a slide along it) at
-      the coarse pose instead of letting them wander.
+      and rotation times ``cfg.prior_lever``) with weight ``cfg.w_m``, worth that many point residuals, along the
+      directions the data leave free only (`_null_space_prior`): a roll about a round shaft or a slide along it
+      stays at ``pose`` instead of wandering, and the data alone decide every other direction.
 
     Every residual goes through the Huber loss with ``cfg.huber_delta``; ``cfg.iterations`` re-weighted Gauss-Newton
     steps are taken (parametrisation in the module docstring). Without a fixed node the gauge is held only by the
@@ -387,7 +397,7 @@ def optimize_graph(
         for t, prior in priors:
             if free[t] and cfg.w_m > 0:
                 E = C[t] @ prior  # C_t times the prior's pose: identity at the prior
-                W = cfg.w_m * np.diag([1.0, 1.0, 1.0] + [cfg.prior_lever**2] * 3)
+                W = _null_space_prior(ne.H[t, t], cfg)
                 ne.H[t, t] += W
                 ne.g[t] += W @ np.concatenate([E[:3, 3], so3_log(E[:3, :3])])
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import trimesh
@@ -283,15 +283,16 @@ class SurgTracker:
 
     def _best_candidate(self, obs: Observation, feats: Features, cands: list[tuple[np.ndarray, list[tuple], int]],
                         last: np.ndarray) -> tuple[np.ndarray, list[tuple], int] | None:
-        """Refine each candidate by the posture graph and keep the one the model fits best (`_fit_error`); among
-        equally good fits, the least motion from ``last`` (a shaft slid along or rolled about its axis fits
-        equally well)."""
+        """Refine each candidate by the posture graph, its motion prior at ``last`` along the directions the frame
+        leaves free (a slide along a shaft, a roll about it: back to the last pose; the instrument may have moved
+        during the loss, so only truly free directions), and keep the one the model fits best (`_fit_error`);
+        among equally good fits, the least motion from ``last``."""
         if not self.cfg.graph.enabled:
             return cands[0] if cands else None
         scored = []
         for pose, edges, inliers in cands:
             node = self._node(obs, feats, orthonormalize(pose))
-            node.pose = orthonormalize(self._optimise(node, list(edges)))
+            node.pose = orthonormalize(self._optimise(node, list(edges), last, self.cfg.failure.relocalise_prior_null))
             motion = inv_T(last) @ node.pose
             move = np.linalg.norm(motion[:3, 3]) + 0.1 * np.radians(rotation_angle_deg(motion[:3, :3]))
             scored.append((self._fit_error(node), move, (node.pose, edges, inliers)))
@@ -324,11 +325,15 @@ class SurgTracker:
         rotation of the instrument and displacement of its origin between consecutive frames."""
         return plausible(inv_T(self.recent[-1].pose) @ pose, self.cfg.ransac)
 
-    def _optimise(self, node: _Node, edges: list) -> np.ndarray:
+    def _optimise(self, node: _Node, edges: list, prior: np.ndarray | None = None,
+                   prior_null: float | None = None) -> np.ndarray:
         """Posture graph over the current frame, adjacent frames and K memory frames (eqs. 7-11); as in the paper
-        (eq. 8) only the current pose xi_t is optimised, the other nodes are held fixed."""
+        (eq. 8) only the current pose xi_t is optimised, the other nodes are held fixed. The motion prior holds
+        what the data leave free at ``prior`` (by default the coarse pose when no features matched), along the
+        directions ``prior_null`` (default the graph config's) selects."""
         others: list[_Node | Keyframe] = [e[0] for e in edges]
-        prior = [] if edges else [(0, node.pose)]  # no features: keep weakly observed directions at the prediction
+        if prior is None and not edges:
+            prior = node.pose
         for prev in reversed(self.recent):
             if prev not in others:
                 others.append(prev)
@@ -345,8 +350,10 @@ class SurgTracker:
         graph_edges = [FeatureEdge(0, index[id(ref)], p_cur, p_ref) for ref, p_ref, p_cur in edges]
         use_sdf = self.sdf is not None
         pairs = [p for j in range(1, len(nodes)) for p in ((0, j), (j, 0))]  # the other poses are fixed
-        poses = optimize_graph(nodes, graph_edges, self.cfg.graph, self.sdf if use_sdf else None,
-                               [0] if use_sdf else [], pairs_2d=pairs, priors=prior)
+        cfg = self.cfg.graph if prior_null is None else replace(self.cfg.graph, prior_null=prior_null)
+        poses = optimize_graph(nodes, graph_edges, cfg, self.sdf if use_sdf else None,
+                               [0] if use_sdf else [], pairs_2d=pairs,
+                               priors=[] if prior is None else [(0, prior)])
         return poses[0]
 
     def _fit_error(self, node: _Node) -> float:
