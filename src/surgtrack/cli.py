@@ -209,7 +209,7 @@ def track(
 
 
 def _load_model(path: Path, cfg):
-    """A model file for `track --model`, checked against the tracker config (one-line errors)."""
+    """A model file for `track --model` and `live --model`, checked against the tracker config (one-line errors)."""
     from .model import load_model
 
     instrument_model = load_model(path)
@@ -316,6 +316,9 @@ def live(
     size: Annotated[str, typer.Option(help="camera stream WIDTHxHEIGHT")] = "640x480",
     fps: Annotated[int, typer.Option(help="camera frame rate")] = 30,
     config: Annotated[Path | None, typer.Option(help="JSON config (see OUT/config.json of any run)")] = None,
+    model: Annotated[Path | None, typer.Option(help="registered instrument model (NAME.stm from surgtrack register): "
+                                                    "poses in its object frame, its SDF from the first frame")]
+    = None,
 ) -> None:
     """Track an instrument live from a RealSense camera (or a recording) and stream its pose over OpenIGTLink."""
     import json
@@ -338,6 +341,7 @@ def live(
         fail(f"--max-frames must be at least 1, got {max_frames}")
     first_mask = read_mask(mask) if mask is not None else None
     cfg = load_config(config)
+    instrument_model = _load_model(model, cfg) if model is not None else None
     try:
         source = RealSenseSource(file, width, height, fps)
     except RealSenseError as e:
@@ -361,7 +365,7 @@ def live(
         if out is not None:
             writer = ResultWriter(out)
             (out / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
-        tracker = SurgTracker(cfg)
+        tracker = SurgTracker(cfg, model=instrument_model)
         if video is not None:
             overlay = _OverlayWriter(video, tracker, source.fps)
         for frame in source:
