@@ -258,6 +258,17 @@ def second_video(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return render_sequence(spec, tmp_path_factory.mktemp("synth2") / "rigid_endoscope_2")
 
 
+def first_pose_error(scan_dir: Path, scan_pose0: np.ndarray, video, pose0: np.ndarray) -> float:
+    """Mean distance (m) of the scan's visible ground-truth points between ``pose0``, a pose in the model's object
+    frame (the scan's first frame, where the scan's tracker put it at ``scan_pose0``), and the video's first
+    ground-truth pose."""
+    scan = open_sequence(scan_dir)
+    model_to_gt = np.linalg.inv(scan.gt_poses()[scan.ids[0]]) @ scan_pose0
+    pts = trimesh.load(scan_dir / "gt" / "visible_points.ply").vertices
+    first = pose0 @ np.linalg.inv(model_to_gt)
+    return float(np.linalg.norm(transform(first, pts) - transform(video.gt_poses()[video.ids[0]], pts), axis=1).mean())
+
+
 def test_register_then_track_another_video(synth_seq, second_video, tmp_path):
     config = tmp_path / "light.json"
     config.write_text(json.dumps(LIGHT))
@@ -286,11 +297,8 @@ def test_register_then_track_another_video(synth_seq, second_video, tmp_path):
     # frame, the first pose of the new video lands near its ground truth, where a tracker that ignored the model
     # would be arbitrarily off. Measured 104 mm: the first frame shows a bare stretch of shaft, and the model from
     # the 30-frame scan fits it equally well slid along the shaft (FPFH + RANSAC finds that slide for every seed).
-    scan = open_sequence(synth_seq)
-    model_to_gt = np.linalg.inv(scan.gt_poses()[scan.ids[0]]) @ read_poses(scan_dir / "ob_in_cam")[scan.ids[0]]
-    first = read_poses(out / "ob_in_cam")[video.ids[0]] @ np.linalg.inv(model_to_gt)
-    pts = trimesh.load(synth_seq / "gt" / "visible_points.ply").vertices
-    add0 = np.linalg.norm(transform(first, pts) - transform(video.gt_poses()[video.ids[0]], pts), axis=1).mean()
+    scan_pose0 = read_poses(scan_dir / "ob_in_cam")[open_sequence(synth_seq).ids[0]]
+    add0 = first_pose_error(synth_seq, scan_pose0, video, read_poses(out / "ob_in_cam")[video.ids[0]])
     assert add0 < 0.12, add0
 
     # The first mask on the background: the model's instrument is not there.
@@ -327,11 +335,8 @@ def test_live_with_a_model_tracks_in_the_models_frame(scanned, synth_seq, second
     # The model's object frame is its scan's first frame's: through the scan's alignment to the ground truth, the
     # live first pose lands near the new video's ground truth. Measured 97 mm (the slide along the bare shaft of
     # test_register_then_track_another_video); the same live run without --model lands 193 mm off.
-    scan, video = open_sequence(synth_seq), open_sequence(second_video)
-    model_to_gt = np.linalg.inv(scan.gt_poses()[scan.ids[0]]) @ model.keyframes[0].pose
-    first = poses[video.ids[0]] @ np.linalg.inv(model_to_gt)
-    pts = trimesh.load(synth_seq / "gt" / "visible_points.ply").vertices
-    add0 = np.linalg.norm(transform(first, pts) - transform(video.gt_poses()[video.ids[0]], pts), axis=1).mean()
+    video = open_sequence(second_video)
+    add0 = first_pose_error(synth_seq, model.keyframes[0].pose, video, poses[video.ids[0]])
     assert add0 < 0.12, add0
     missing = one_line_error(surgtrack("live", "--file", recording, "--mask", second_video / "masks" / "000000.png",
                                        "--model", tmp_path / "none.stm", "--no-igtl"))

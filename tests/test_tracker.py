@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from surgtrack.config import TrackerConfig
-from surgtrack.geometry import backproject
+from surgtrack.geometry import backproject, depth_to_xyz
 from surgtrack.io import open_sequence, read_poses
 from surgtrack.metrics import evaluate
 from surgtrack.pipeline import track_sequence
@@ -73,3 +73,14 @@ def test_no_graph_ablation_uses_ransac_only(synth_seq, tmp_path):
     records = [json.loads(x) for x in (tmp_path / "out" / "track.jsonl").read_text().splitlines()]
     assert all("graph" not in r["ms"] for r in records)
     assert summary.frames == len(seq)
+
+
+def test_preprocess_points_lie_on_their_pixels_rays(synth_seq):
+    """The instrument crop is lifted with its offset in the image: each point is its pixel's ray at its depth."""
+    from surgtrack.config import PreprocessConfig
+    from surgtrack.preprocess import preprocess
+
+    frame = open_sequence(synth_seq)[5]
+    obs = preprocess(frame, frame.mask, PreprocessConfig())
+    assert obs.n_valid > 300
+    np.testing.assert_allclose(obs.xyz[obs.valid], depth_to_xyz(obs.depth, frame.K)[obs.valid], atol=1e-6)

@@ -100,10 +100,11 @@ def backproject(depth: np.ndarray, K: np.ndarray, mask: np.ndarray | None = None
     return np.stack([x, y, z], axis=1), np.stack([v, u], axis=1)
 
 
-def depth_to_xyz(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Per-pixel camera-frame points (H, W, 3) of a depth map; invalid pixels have z = 0."""
+def depth_to_xyz(depth: np.ndarray, K: np.ndarray, origin: tuple[int, int] = (0, 0)) -> np.ndarray:
+    """Per-pixel camera-frame points (H, W, 3) of a depth map, or of a crop of one whose top-left pixel is
+    ``origin`` = (row, column) in the image K belongs to; invalid pixels have z = 0."""
     h, w = depth.shape
-    u, v = np.meshgrid(np.arange(w), np.arange(h))
+    u, v = np.meshgrid(np.arange(origin[1], origin[1] + w), np.arange(origin[0], origin[0] + h))
     x = (u - K[0, 2]) * depth / K[0, 0]
     y = (v - K[1, 2]) * depth / K[1, 1]
     return np.stack([x, y, depth], axis=-1)

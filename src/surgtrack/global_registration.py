@@ -5,6 +5,8 @@ Used where texture is too weak for feature re-localisation, and to find the firs
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
@@ -27,28 +29,32 @@ def overlap(model_tree: cKDTree, pose: np.ndarray, points_cam: np.ndarray, dist:
     return float(np.mean(np.isfinite(d)))
 
 
-def global_register(points_cam: np.ndarray, model_obj: np.ndarray, voxel: float = 0.004, seed: int = 0,
-                    iterations: int = 50_000) -> tuple[np.ndarray | None, float]:
-    """Pose (object-to-camera) that lays the model on the frame's points, and the fraction of those points it
-    explains (within 2 voxels); (None, 0) when too few points."""
+def global_register(points_cam: np.ndarray, model_obj: np.ndarray, voxel: float = 0.004, seeds: Sequence[int] = (0,),
+                    iterations: int = 50_000) -> list[tuple[np.ndarray, float]]:
+    """Poses (object-to-camera) that lay the model on the frame's points, one per RANSAC seed, each with the fraction
+    of those points it explains (within 2 voxels); empty when there are too few points. The clouds and their FPFH
+    features are computed once for all seeds."""
     if len(points_cam) < 30 or len(model_obj) < 30:
-        return None, 0.0
-    o3d.utility.random.seed(seed)
+        return []
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
     reg = o3d.pipelines.registration
     src, src_f = _cloud(model_obj, voxel)
     dst, dst_f = _cloud(points_cam, voxel)
     if len(src.points) < 10 or len(dst.points) < 10:
-        return None, 0.0
+        return []
     gate = 2.0 * voxel
-    coarse = reg.registration_ransac_based_on_feature_matching(
-        src, dst, src_f, dst_f, True, gate, reg.TransformationEstimationPointToPoint(False), 3,
-        [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(gate)],
-        reg.RANSACConvergenceCriteria(iterations, 0.999))
-    fine = reg.registration_icp(src, dst, gate, coarse.transformation, reg.TransformationEstimationPointToPlane())
-    # Point-to-plane ICP can slide off a round shaft it cannot pin: keep whichever pose explains more.
     tree, dst_pts = cKDTree(np.asarray(src.points)), np.asarray(dst.points)
-    scored = [(overlap(tree, T, dst_pts, gate), T) for T in (np.asarray(fine.transformation),
-                                                             np.asarray(coarse.transformation))]
-    explained, pose = max(scored, key=lambda s: s[0])
-    return pose.copy(), explained
+    found = []
+    for seed in seeds:
+        o3d.utility.random.seed(seed)
+        coarse = reg.registration_ransac_based_on_feature_matching(
+            src, dst, src_f, dst_f, True, gate, reg.TransformationEstimationPointToPoint(False), 3,
+            [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(gate)],
+            reg.RANSACConvergenceCriteria(iterations, 0.999))
+        fine = reg.registration_icp(src, dst, gate, coarse.transformation, reg.TransformationEstimationPointToPlane())
+        # Point-to-plane ICP can slide off a round shaft it cannot pin: keep whichever pose explains more.
+        scored = [(overlap(tree, T, dst_pts, gate), T) for T in (np.array(fine.transformation),
+                                                                 np.array(coarse.transformation))]
+        explained, pose = max(scored, key=lambda sc: sc[0])
+        found.append((pose, explained))
+    return found

@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 
 from .config import PreprocessConfig
+from .geometry import depth_to_xyz
 from .io import Frame
 
 
@@ -96,9 +97,7 @@ def preprocess(frame: Frame, mask: np.ndarray, cfg: PreprocessConfig) -> Observa
         if cfg.mask_erosion > 0:
             kernel = np.ones((2 * cfg.mask_erosion + 1,) * 2, np.uint8)
             m = cv2.erode(m, kernel)
-        u, v = np.meshgrid(np.arange(cs.start, cs.stop), np.arange(rs.start, rs.stop))
-        K = frame.K
-        p = np.stack([(u - K[0, 2]) * d / K[0, 0], (v - K[1, 2]) * d / K[1, 1], d], axis=-1).astype(np.float32)
+        p = depth_to_xyz(d, frame.K, (rs.start, cs.start)).astype(np.float32)
         n = normals_from_xyz(p, cfg.normal_step)
         # A normal is trusted only where the neighbours it is made from have depth on the same surface.
         k = cfg.normal_step

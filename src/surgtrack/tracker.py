@@ -152,10 +152,10 @@ class SurgTracker:
         if best is not None:
             pose, edges = best[1][0] @ best[0].pose, [(best[0], *best[1][1:])]
         else:
-            pose, _ = global_register(obs.points()[0], self.model_points, seed=self.cfg.seed)
-            edges = []
-            if pose is None:
+            found = global_register(obs.points()[0], self.model_points, seeds=[self.cfg.seed])
+            if not found:
                 raise ValueError(f"frame {obs.frame.id}: too few instrument points to find the model")
+            pose, edges = found[0][0], []
         node = self._node(obs, feats, orthonormalize(pose))
         node.pose = orthonormalize(self._optimise(node, edges))
         if self._confidence(node) < self.cfg.failure.min_global_overlap:
@@ -263,7 +263,7 @@ class SurgTracker:
     def _candidates(self, obs: Observation, feats: Features,
                     last: np.ndarray) -> list[tuple[np.ndarray, list[tuple], int]]:
         """Candidate poses after a loss: feature RANSAC (eq. 5) against the keyframes (those that saw the last
-        view first), FPFH registration against the model with a few seeds, and the last pose (listed last)."""
+        view first) and FPFH registration against the model with a few seeds."""
         cands: list[tuple[np.ndarray, list[tuple], int]] = []
         near = self.pool.select(last, len(self.pool))
         for kf in near + [k for k in self.pool.keyframes if k not in near]:
@@ -273,12 +273,10 @@ class SurgTracker:
                 if len(cands) == self.cfg.failure.relocalise_candidates:
                     break
         if self.model_points is not None:
-            pts = obs.points()[0]
-            for k in range(self.cfg.failure.relocalise_candidates):
-                pose, explained = global_register(pts, self.model_points, seed=self.cfg.seed + k)
-                if pose is not None and explained >= self.cfg.failure.min_global_overlap:
+            seeds = range(self.cfg.seed, self.cfg.seed + self.cfg.failure.relocalise_candidates)
+            for pose, explained in global_register(obs.points()[0], self.model_points, seeds=seeds):
+                if explained >= self.cfg.failure.min_global_overlap:
                     cands.append((pose, [], 0))
-        cands.append((last, [], 0))
         return cands
 
     def _best_candidate(self, obs: Observation, feats: Features, cands: list[tuple[np.ndarray, list[tuple], int]],
@@ -307,8 +305,8 @@ class SurgTracker:
         last pose competes too."""
         last = self.recent[-1].pose
         cands = self._candidates(obs, feats, last)
-        if not self.cfg.graph.enabled or self.frames_lost > self.cfg.failure.relocalise_window:
-            cands = cands[:-1]
+        if self.cfg.graph.enabled and self.frames_lost <= self.cfg.failure.relocalise_window:
+            cands.append((last, [], 0))
         return self._best_candidate(obs, feats, cands, last)
 
     def _predicted_pose(self) -> np.ndarray:
@@ -356,22 +354,23 @@ class SurgTracker:
                                priors=[] if prior is None else [(0, prior)])
         return poses[0]
 
-    def _fit_error(self, node: _Node) -> float:
-        """Mean distance (m, capped at assoc_dist) of the frame's points, in the object frame, to the model."""
+    def _model_distances(self, node: _Node) -> np.ndarray:
+        """Distance of each of the frame's points, in the object frame, to the model built so far (inf beyond
+        assoc_dist)."""
         pts = node.xyz[node.xyz[..., 2] > 0]
         if len(pts) == 0 or self._model_tree is None:
-            return float("inf")
-        cap = self.cfg.graph.assoc_dist
-        dist, _ = self._model_tree.query(transform(inv_T(node.pose), pts), distance_upper_bound=cap)
-        return float(np.mean(np.minimum(dist, cap)))
+            return np.full(1, np.inf)
+        dist, _ = self._model_tree.query(transform(inv_T(node.pose), pts),
+                                         distance_upper_bound=self.cfg.graph.assoc_dist)
+        return dist
+
+    def _fit_error(self, node: _Node) -> float:
+        """Mean distance (m, capped at assoc_dist) of the frame's points to the model."""
+        return float(np.mean(np.minimum(self._model_distances(node), self.cfg.graph.assoc_dist)))
 
     def _confidence(self, node: _Node) -> float:
-        """Fraction of the frame's points (object frame) within assoc_dist of the model built so far."""
-        pts = node.xyz[node.xyz[..., 2] > 0]
-        if len(pts) == 0 or self._model_tree is None:
-            return 0.0
-        dist, _ = self._model_tree.query(transform(inv_T(node.pose), pts), distance_upper_bound=1.0)
-        return float(np.mean(dist < self.cfg.graph.assoc_dist))
+        """Fraction of the frame's points within assoc_dist of the model."""
+        return float(np.mean(np.isfinite(self._model_distances(node))))
 
     def _add_keyframe(self, node: _Node, obs: Observation) -> None:
         kf = Keyframe(node.frame_id, node.pose, node.features, node.xyz, node.normals, node.K_grid,
