@@ -129,7 +129,9 @@ class BaselineTracker(ABC):
     def _predicted_mask(self, frame: Frame) -> np.ndarray:
         if self.model_points is None or self.pose is None:
             return np.zeros(frame.depth.shape, bool)
-        return predict_mask(self.model_points, self.pose, frame.K, frame.depth)
+        pre = self.cfg.preprocess
+        return predict_mask(self.model_points, self.pose, frame.K, frame.depth, pre.predicted_mask_margin,
+                            pre.predicted_mask_tol)
 
     def _model_consistent(self, obs: Observation, pose: np.ndarray) -> Observation:
         """The observation with its mask cut to pixels whose point at ``pose`` lies near the model points."""

@@ -65,7 +65,9 @@ def shorten(spec: SynthSpec, frames: int) -> SynthSpec:
 
 def run_bench(suite: str, methods: list[str], root: Path | str, short: bool = False, frames: int | None = None,
               first_mask_only: bool = False, log: Callable[[str], None] = print) -> dict:
-    """Render the suite if needed, run every method on every sequence, evaluate; returns the bench.json dict."""
+    """Render the suite if needed, run every method on every sequence, evaluate; returns the bench.json dict.
+    ``log`` gets a line per rendered and per tracked sequence (it runs in each method's process: a module-level
+    function such as ``print``)."""
     root = Path(root)
     results: dict = {"suite": suite, "short": short, "frames": frames, "first_mask_only": first_mask_only,
                      "methods": {}}
@@ -85,7 +87,7 @@ def run_bench(suite: str, methods: list[str], root: Path | str, short: bool = Fa
         # Each method runs in a child process of its own, so its peak memory is its own.
         with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("fork")) as pool:
             per_seq, errors[method], first_seq[method], peak = pool.submit(
-                _run_method, method, names, root, first_mask_only).result()
+                _run_method, method, names, root, first_mask_only, log).result()
         results["methods"][method] = {"sequences": per_seq, **_mean(per_seq), "peak_rss_mb": peak}
     results["plots"] = [p.name for p in (
         plot_accuracy({k: v["ADD"] for k, v in errors.items()}, root / "accuracy_add.png", "ADD"),
@@ -96,7 +98,8 @@ def run_bench(suite: str, methods: list[str], root: Path | str, short: bool = Fa
     return results
 
 
-def _run_method(method: str, names: list[str], root: Path, first_mask_only: bool) -> tuple[dict, dict, dict, float]:
+def _run_method(method: str, names: list[str], root: Path, first_mask_only: bool,
+                log: Callable[[str], None]) -> tuple[dict, dict, dict, float]:
     """One method over every sequence: per-sequence figures, all per-frame errors, the first sequence's ADD errors
     and the process's peak memory (MB)."""
     per_seq, errors, first = {}, {"ADD": [], "ADD-S": []}, {}
@@ -115,8 +118,8 @@ def _run_method(method: str, names: list[str], root: Path, first_mask_only: bool
                          "add_s_auc_full": m["add_s_auc_full"], "add_auc_full": m["add_auc_full"],
                          "lost": summary.lost, "frames": summary.frames, "fps": summary.fps,
                          "stage_ms": summary.stage_ms, "seconds": time.perf_counter() - t0}
-        print(f"{method:>15} {name:<18} ADD-S {m['add_s_auc']:6.2f}  ADD {m['add_auc']:6.2f}  "
-              f"lost {summary.lost:3d}  {summary.fps:5.1f} fps", flush=True)
+        log(f"{method:>15} {name:<18} ADD-S {m['add_s_auc']:6.2f}  ADD {m['add_auc']:6.2f}  "
+            f"lost {summary.lost:3d}  {summary.fps:5.1f} fps")
     return per_seq, errors, first, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 

@@ -13,6 +13,8 @@ class PreprocessConfig:
     bilateral_sigma_depth: float = 0.01  # m
     bilateral_sigma_space: float = 3.0  # pixels
     mask_erosion: int = 1  # pixels eroded from the instrument mask before lifting points
+    predicted_mask_margin: int = 4  # pixels a predicted mask (no mask given) extends beyond the rendered model
+    predicted_mask_tol: float = 0.01  # m a predicted mask's depth may lie outside the model's depth nearby
     normal_step: int = 1  # normals from neighbours this many pixels away (larger: smoother, fewer thin-part pixels)
     max_grazing_deg: float = 80.0  # drop points whose normal is further than this from the viewing ray
     min_depth: float = 0.1  # m

@@ -31,7 +31,7 @@ def render_depth(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, shape:
 
 
 def predict_mask(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, depth: np.ndarray,
-                 margin: int = 4, tol: float = 0.01) -> np.ndarray:
+                 margin: int, tol: float) -> np.ndarray:
     """Mask of the instrument at a predicted pose: observed depth within ``tol`` of the model's depth nearby.
 
     The model depth is spread over ``margin`` pixels to absorb the prediction's error; observed depth more than

@@ -409,7 +409,9 @@ class SurgTracker:
         """No mask given: render the keyframes' points at the last pose and keep depth-consistent pixels."""
         if self.model_points is None:
             return np.zeros(frame.depth.shape, bool)
-        return predict_mask(self.model_points, self.recent[-1].pose, frame.K, frame.depth)
+        pre = self.cfg.preprocess
+        return predict_mask(self.model_points, self.recent[-1].pose, frame.K, frame.depth,
+                            pre.predicted_mask_margin, pre.predicted_mask_tol)
 
     def _lose(self, clock: _Clock, confidence: float = 0.0) -> TrackResult:
         self.lost = True
