@@ -31,11 +31,13 @@ def render_depth(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, shape:
 
 
 def predict_mask(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, depth: np.ndarray,
-                 margin: int, tol: float) -> np.ndarray:
+                 margin: int, tol: float, colour: np.ndarray | None = None) -> np.ndarray:
     """Mask of the instrument at a predicted pose: observed depth within ``tol`` of the model's depth nearby.
 
     The model depth is spread over ``margin`` pixels to absorb the prediction's error; observed depth more than
-    ``tol`` in front of the model (an occluder) or behind it (background) is left out."""
+    ``tol`` in front of the model (an occluder) or behind it (background) is left out. With ``colour`` (a
+    boolean image: the pixel's colour may be instrument), pixels beyond the rendered model's own silhouette
+    must pass it as well, so the mask cannot grow into a hand or tissue at the instrument's depth."""
     model = render_depth(points_obj, pose, K, depth.shape)
     if not (model > 0).any():
         return np.zeros(depth.shape, bool)
@@ -46,4 +48,75 @@ def predict_mask(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, depth:
     zmin = -cv2.dilate(-np.where(near > 0, near, big), kernel)
     zmax = cv2.dilate(far, kernel)
     covered = zmax > 0
+    if colour is not None:
+        core = cv2.erode((model > 0).astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+        covered &= core | colour
     return covered & (depth > 0) & (depth > zmin - tol) & (depth < zmax + tol)
+
+
+class ColourModel:
+    """Instrument vs. surroundings colour likelihoods for masks predicted without a given mask.
+
+    Two smoothed histograms over quantised RGB: the instrument's from the first (given) mask, the surroundings'
+    from a ring around the instrument, refreshed every frame with the ring pixels whose depth is not the
+    instrument's (hands and tissue that later touch it are then known by their colour). Bayes' rule
+    with equal priors gives each pixel's posterior of being instrument."""
+
+    def __init__(self, bins: int = 16, ring: tuple[int, int] = (6, 30), rate: float = 0.0):
+        self.bins, self.ring, self.rate = bins, ring, rate
+        self.instrument: np.ndarray | None = None
+        self.surroundings: np.ndarray | None = None
+
+    def _index(self, rgb: np.ndarray) -> np.ndarray:
+        q = (rgb.astype(np.int32) * self.bins) >> 8
+        return (q[..., 0] * self.bins + q[..., 1]) * self.bins + q[..., 2]
+
+    def _histogram(self, rgb: np.ndarray, where: np.ndarray) -> np.ndarray:
+        from scipy.ndimage import gaussian_filter
+
+        counts = np.bincount(self._index(rgb)[where], minlength=self.bins ** 3).astype(np.float64)
+        h = gaussian_filter(counts.reshape((self.bins,) * 3), 1.0, mode="constant").ravel()
+        return h / max(h.sum(), 1e-12)
+
+    def _ring(self, mask: np.ndarray) -> np.ndarray:
+        def grow(r: int) -> np.ndarray:
+            return cv2.dilate(mask.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2))
+
+        return grow(self.ring[1]).astype(bool) & ~grow(self.ring[0]).astype(bool)
+
+    def learn(self, rgb: np.ndarray, mask: np.ndarray) -> None:
+        """Start from a given instrument mask: its pixels are instrument, a ring around it surroundings."""
+        self.instrument = self._histogram(rgb, mask.astype(bool))
+        self.surroundings = self._histogram(rgb, self._ring(mask))
+
+    def update(self, rgb: np.ndarray, mask: np.ndarray, not_instrument: np.ndarray) -> None:
+        """Blend in the surroundings seen in a ring around a predicted mask, where ``not_instrument`` holds."""
+        where = self._ring(mask) & not_instrument
+        if self.surroundings is not None and where.sum() >= 50:
+            self.surroundings = (1 - self.rate) * self.surroundings + self.rate * self._histogram(rgb, where)
+
+    def posterior(self, rgb: np.ndarray) -> np.ndarray:
+        """P(instrument | colour) per pixel, equal priors (0.5 where neither histogram has seen the colour)."""
+        eps = 1e-6
+        if self.instrument is None or self.surroundings is None:
+            return np.full(rgb.shape[:2], 0.5)
+        f = self.instrument[self._index(rgb)] + eps
+        b = self.surroundings[self._index(rgb)] + eps
+        return f / (f + b)
+
+
+def search_mask(posterior: np.ndarray, depth: np.ndarray, min_posterior: float, pixels: tuple[int, int]) -> np.ndarray:
+    """Where the instrument may be when its pose is lost: pixels with valid depth whose colour is instrument with
+    at least ``min_posterior``, opened to drop speckle; the connected regions whose area lies within ``pixels``
+    (the instrument's plausible pixel count, min and max) are kept, the largest and those of at least a fifth of
+    its area (an occluder may split the instrument)."""
+    candidate = ((posterior >= min_posterior) & (depth > 0)).astype(np.uint8)
+    candidate = cv2.morphologyEx(candidate, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(candidate, connectivity=8)
+    area = stats[1:, cv2.CC_STAT_AREA]
+    fits = (area >= pixels[0]) & (area <= pixels[1])
+    if not fits.any():
+        return np.zeros(depth.shape, bool)
+    keep = np.flatnonzero(fits & (area >= area[fits].max() / 5)) + 1
+    mask = np.isin(labels, keep)
+    return mask if mask.sum() <= pixels[1] else np.zeros(depth.shape, bool)

@@ -31,7 +31,7 @@ from .geometry import (
 )
 from .global_registration import global_register
 from .io import Frame
-from .masking import predict_mask
+from .masking import ColourModel, predict_mask, search_mask
 from .memory_pool import Keyframe, MemoryPool
 from .model import InstrumentModel
 from .posture_graph import FeatureEdge, GraphNode, optimize_graph
@@ -106,6 +106,7 @@ class SurgTracker:
         self._field: InstrumentSDF | None = None  # the field refitted in line when there is no background fitter
         self.model_points: np.ndarray | None = None  # the keyframes' points in the object frame
         self._model_tree: cKDTree | None = None
+        self.colour = ColourModel()
         self.model = model
         if model is not None:
             for kf in model.keyframes:
@@ -120,6 +121,7 @@ class SurgTracker:
     def register(self, frame: Frame, mask: np.ndarray) -> np.ndarray:
         """Start tracking on the first frame and its instrument mask; returns the first pose."""
         obs = preprocess(frame, mask, self.cfg.preprocess)
+        self.colour.learn(frame.rgb, mask)
         if obs.n_valid < self.cfg.failure.min_pixels:
             raise ValueError(
                 f"frame {frame.id}: only {obs.n_valid} instrument pixels with valid depth in the first mask "
@@ -284,7 +286,8 @@ class SurgTracker:
         """Refine each candidate by the posture graph, its motion prior at ``last`` along the directions the frame
         leaves free (a slide along a shaft, a roll about it: back to the last pose; the instrument may have moved
         during the loss, so only truly free directions), and keep the one the model fits best (`_fit_error`);
-        among equally good fits, the least motion from ``last``."""
+        among equally good fits, the least motion from ``last``. A candidate whose origin moved further than the
+        physical bound allows over the frames since ``last`` is dropped (a look-alike elsewhere in the image)."""
         if not self.cfg.graph.enabled:
             return cands[0] if cands else None
         scored = []
@@ -292,6 +295,8 @@ class SurgTracker:
             node = self._node(obs, feats, orthonormalize(pose))
             node.pose = orthonormalize(self._optimise(node, list(edges), last, self.cfg.failure.relocalise_prior_null))
             motion = inv_T(last) @ node.pose
+            if np.linalg.norm(motion[:3, 3]) > self.cfg.ransac.max_jump_trans * (self.frames_lost + 1):
+                continue
             move = np.linalg.norm(motion[:3, 3]) + 0.1 * np.radians(rotation_angle_deg(motion[:3, :3]))
             scored.append((self._fit_error(node), move, (node.pose, edges, inliers)))
         if not scored:
@@ -410,8 +415,16 @@ class SurgTracker:
         if self.model_points is None:
             return np.zeros(frame.depth.shape, bool)
         pre = self.cfg.preprocess
+        colour = None
+        if pre.predicted_mask_colour > 0 and self.colour.instrument is not None:
+            posterior = self.colour.posterior(frame.rgb)
+            if self.lost:  # the instrument may be anywhere: look for its colour
+                seen = self.pool.keyframes[-1].mask.sum() if len(self.pool) else 0
+                return search_mask(posterior, frame.depth, pre.search_mask_colour,
+                                   (self.cfg.failure.min_pixels, 3 * max(seen, self.cfg.failure.min_pixels)))
+            colour = posterior >= pre.predicted_mask_colour
         return predict_mask(self.model_points, self.recent[-1].pose, frame.K, frame.depth,
-                            pre.predicted_mask_margin, pre.predicted_mask_tol)
+                            pre.predicted_mask_margin, pre.predicted_mask_tol, colour)
 
     def _lose(self, clock: _Clock, confidence: float = 0.0) -> TrackResult:
         self.lost = True
