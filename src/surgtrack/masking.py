@@ -6,7 +6,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from .geometry import project, transform
+from .geometry import depth_to_xyz, project, transform
 
 
 def render_depth(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, shape: tuple[int, int],
@@ -31,13 +31,15 @@ def render_depth(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, shape:
 
 
 def predict_mask(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, depth: np.ndarray,
-                 margin: int, tol: float, colour: np.ndarray | None = None) -> np.ndarray:
+                 margin: int, tol: float, posterior: np.ndarray | None = None,
+                 min_posterior: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
     """Mask of the instrument at a predicted pose: observed depth within ``tol`` of the model's depth nearby.
 
     The model depth is spread over ``margin`` pixels to absorb the prediction's error; observed depth more than
-    ``tol`` in front of the model (an occluder) or behind it (background) is left out. With ``colour`` (a
-    boolean image: the pixel's colour may be instrument), pixels beyond the rendered model's own silhouette
-    must pass it as well, so the mask cannot grow into a hand or tissue at the instrument's depth."""
+    ``tol`` in front of the model (an occluder) or behind it (background) is left out. With ``posterior`` (per
+    pixel, of the colour being instrument's: `ColourModel`), pixels on the rendered model must reach
+    ``min_posterior[0]``, and those beyond its silhouette ``min_posterior[1]``, so the mask grows into neither a
+    hand nor tissue at the instrument's depth."""
     model = render_depth(points_obj, pose, K, depth.shape)
     if not (model > 0).any():
         return np.zeros(depth.shape, bool)
@@ -48,9 +50,9 @@ def predict_mask(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, depth:
     zmin = -cv2.dilate(-np.where(near > 0, near, big), kernel)
     zmax = cv2.dilate(far, kernel)
     covered = zmax > 0
-    if colour is not None:
+    if posterior is not None:
         core = cv2.erode((model > 0).astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
-        covered &= core | colour
+        covered &= posterior >= np.where(core, *min_posterior)
     return covered & (depth > 0) & (depth > zmin - tol) & (depth < zmax + tol)
 
 
@@ -97,7 +99,7 @@ class ColourModel:
 
     def posterior(self, rgb: np.ndarray) -> np.ndarray:
         """P(instrument | colour) per pixel, equal priors (0.5 where neither histogram has seen the colour)."""
-        eps = 1e-6
+        eps = 0.5 / self.bins ** 3  # half a uniform bin: a colour neither histogram has seen stays near 0.5
         if self.instrument is None or self.surroundings is None:
             return np.full(rgb.shape[:2], 0.5)
         f = self.instrument[self._index(rgb)] + eps
@@ -105,18 +107,22 @@ class ColourModel:
         return f / (f + b)
 
 
-def search_mask(posterior: np.ndarray, depth: np.ndarray, min_posterior: float, pixels: tuple[int, int]) -> np.ndarray:
-    """Where the instrument may be when its pose is lost: pixels with valid depth whose colour is instrument with
-    at least ``min_posterior``, opened to drop speckle; the connected regions whose area lies within ``pixels``
-    (the instrument's plausible pixel count, min and max) are kept, the largest and those of at least a fifth of
-    its area (an occluder may split the instrument)."""
-    candidate = ((posterior >= min_posterior) & (depth > 0)).astype(np.uint8)
-    candidate = cv2.morphologyEx(candidate, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(candidate, connectivity=8)
-    area = stats[1:, cv2.CC_STAT_AREA]
-    fits = (area >= pixels[0]) & (area <= pixels[1])
-    if not fits.any():
-        return np.zeros(depth.shape, bool)
-    keep = np.flatnonzero(fits & (area >= area[fits].max() / 5)) + 1
-    mask = np.isin(labels, keep)
-    return mask if mask.sum() <= pixels[1] else np.zeros(depth.shape, bool)
+def search_mask(posterior: np.ndarray, depth: np.ndarray, K: np.ndarray, centre: np.ndarray, radius: float,
+                min_posterior: float, pixels: tuple[int, int]) -> np.ndarray:
+    """Where the instrument may be when its pose is lost: the connected region of pixels whose colour is
+    instrument with at least ``min_posterior``, of a plausible pixel count (``pixels``: min, max, counting pixels
+    with valid depth), whose 3D centroid lies within ``radius`` of ``centre`` (camera frame: where the instrument
+    was last seen) and nearest to it; its pixels with valid depth, or an empty mask when there is none.
+    Connectivity is by colour alone, so depth dropouts along a thin shaft do not break it apart."""
+    n, labels = cv2.connectedComponents((posterior >= min_posterior).astype(np.uint8), connectivity=8)
+    labels[depth <= 0] = 0
+    area = np.bincount(labels.ravel(), minlength=n)
+    xyz = depth_to_xyz(depth, K)
+    best, nearest = 0, radius
+    for label in np.flatnonzero((area >= pixels[0]) & (area <= pixels[1])):
+        if label == 0:
+            continue
+        distance = float(np.linalg.norm(np.median(xyz[labels == label], axis=0) - centre))
+        if distance <= nearest:
+            best, nearest = label, distance
+    return labels == best if best else np.zeros(depth.shape, bool)

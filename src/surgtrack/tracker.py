@@ -415,16 +415,18 @@ class SurgTracker:
         if self.model_points is None:
             return np.zeros(frame.depth.shape, bool)
         pre = self.cfg.preprocess
-        colour = None
+        posterior = None
         if pre.predicted_mask_colour > 0 and self.colour.instrument is not None:
             posterior = self.colour.posterior(frame.rgb)
-            if self.lost:  # the instrument may be anywhere: look for its colour
-                seen = self.pool.keyframes[-1].mask.sum() if len(self.pool) else 0
-                return search_mask(posterior, frame.depth, pre.search_mask_colour,
-                                   (self.cfg.failure.min_pixels, 3 * max(seen, self.cfg.failure.min_pixels)))
-            colour = posterior >= pre.predicted_mask_colour
+            if self.lost:  # look for the instrument's colour where it can have moved since it was last seen
+                last = self.recent[-1]
+                seen = max(int(self.pool.keyframes[-1].mask.sum()), self.cfg.failure.min_pixels)
+                reach = self.cfg.ransac.max_jump_trans * (frame.index - last.index)
+                return search_mask(posterior, frame.depth, frame.K, last.pose[:3, 3], reach, pre.search_mask_colour,
+                                   (self.cfg.failure.min_pixels, 3 * seen))
         return predict_mask(self.model_points, self.recent[-1].pose, frame.K, frame.depth,
-                            pre.predicted_mask_margin, pre.predicted_mask_tol, colour)
+                            pre.predicted_mask_margin, pre.predicted_mask_tol, posterior,
+                            (0.0, pre.predicted_mask_colour))
 
     def _lose(self, clock: _Clock, confidence: float = 0.0) -> TrackResult:
         self.lost = True

@@ -1,0 +1,81 @@
+"""Masks without a given mask: colour likelihoods, the predicted mask's colour gate, the search when lost."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from surgtrack.geometry import inv_T
+from surgtrack.masking import ColourModel, predict_mask, search_mask
+
+K = np.array([[200.0, 0, 80], [0, 200.0, 60], [0, 0, 1]])
+GREY, GREEN, SKIN, BLUE = (150, 150, 155), (40, 140, 60), (220, 170, 140), (30, 40, 200)
+
+
+def scene() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A grey bar (the instrument) at 0.3 m on a green drape at 0.5 m; rgb, depth, mask."""
+    rgb = np.empty((120, 160, 3), np.uint8)
+    rgb[:] = GREEN
+    depth = np.full((120, 160), 0.5, np.float32)
+    mask = np.zeros((120, 160), bool)
+    mask[50:70, 30:130] = True
+    rgb[mask] = GREY
+    depth[mask] = 0.3
+    return rgb, depth, mask
+
+
+def bar_points(mask: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    v, u = np.nonzero(mask)
+    z = depth[v, u]
+    return np.stack([(u - K[0, 2]) * z / K[0, 0], (v - K[1, 2]) * z / K[1, 1], z], axis=1)
+
+
+def test_colour_posterior_separates_instrument_from_surroundings():
+    rgb, _, mask = scene()
+    colours = ColourModel()
+    colours.learn(rgb, mask)
+    probe = np.array([[GREY, GREEN, BLUE]], np.uint8)
+    p = colours.posterior(probe)[0]
+    assert p[0] > 0.9 and p[1] < 0.1
+    assert abs(p[2] - 0.5) < 1e-3  # a colour neither side has seen decides nothing
+
+
+def test_predicted_mask_does_not_grow_into_a_hand_at_the_instruments_depth():
+    rgb, depth, mask = scene()
+    seen = rgb.copy()
+    seen[40:80, 140:150] = SKIN  # the first frame shows the hand near the bar
+    colours = ColourModel()
+    colours.learn(seen, mask)
+    # next frame: the hand touches the bar's end at the bar's depth, and the bar itself is unchanged
+    rgb2, depth2 = rgb.copy(), depth.copy()
+    hand = np.zeros_like(mask)
+    hand[45:75, 130:134] = True
+    rgb2[hand], depth2[hand] = SKIN, 0.3
+    points = bar_points(mask, depth)
+    pose = np.eye(4)
+    plain = predict_mask(points, pose, K, depth2, 6, 0.01)
+    gated = predict_mask(points, pose, K, depth2, 6, 0.01, colours.posterior(rgb2), (0.0, 0.25))
+    assert (plain & hand).sum() > 50  # depth alone takes the touching hand in
+    assert not (gated & hand).any()
+    assert (gated & mask).sum() >= 0.95 * mask.sum()  # the instrument itself is all kept
+
+
+def test_search_mask_finds_the_nearest_instrument_coloured_region_of_plausible_size():
+    rgb, depth, mask = scene()
+    colours = ColourModel()
+    colours.learn(rgb, mask)
+    # the bar has moved to the top left; a big grey tray lies bottom right; a few grey speckles
+    rgb2 = np.empty_like(rgb)
+    rgb2[:] = GREEN
+    depth2 = np.full_like(depth, 0.5)
+    moved = np.zeros_like(mask)
+    moved[10:30, 10:110] = True
+    tray = np.zeros_like(mask)
+    tray[70:120, 40:160] = True
+    rgb2[moved | tray] = GREY
+    depth2[moved] = 0.32
+    depth2[tray] = 0.45
+    rgb2[5, 150] = GREY
+    last = inv_T(np.eye(4))[:3, 3] + np.array([0.0, 0.0, 0.3])  # last seen at the image centre, 0.3 m
+    found = search_mask(colours.posterior(rgb2), depth2, K, last, 0.5, 0.6, (40, 3 * int(mask.sum())))
+    assert (found == moved).all()  # the tray is too big to be the instrument
+    assert not search_mask(colours.posterior(rgb2), depth2, K, last, 0.05, 0.6, (40, 6000)).any()  # out of reach
