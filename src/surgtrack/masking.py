@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+from scipy.ndimage import gaussian_filter
 
 from .geometry import depth_to_xyz, project, transform
 
@@ -59,13 +60,14 @@ def predict_mask(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, depth:
 class ColourModel:
     """Instrument vs. surroundings colour likelihoods for masks predicted without a given mask.
 
-    Two smoothed histograms over quantised RGB: the instrument's from the first (given) mask, the surroundings'
-    from a ring around the instrument, refreshed every frame with the ring pixels whose depth is not the
-    instrument's (hands and tissue that later touch it are then known by their colour). Bayes' rule
-    with equal priors gives each pixel's posterior of being instrument."""
+    Two smoothed histograms over quantised RGB, both from the first frame: the instrument's from its given mask,
+    the surroundings' from a ring ``ring`` (inner, outer radius in pixels) around it, where the hands holding the
+    instrument and the tissue beside it are. Bayes' rule with equal priors gives each pixel's posterior of being
+    instrument. (Refreshing the surroundings from later frames was measured to hurt: the ring then takes in parts
+    of the instrument the model has not seen yet.)"""
 
-    def __init__(self, bins: int = 16, ring: tuple[int, int] = (6, 30), rate: float = 0.0):
-        self.bins, self.ring, self.rate = bins, ring, rate
+    def __init__(self, bins: int = 16, ring: tuple[int, int] = (6, 30)):
+        self.bins, self.ring = bins, ring
         self.instrument: np.ndarray | None = None
         self.surroundings: np.ndarray | None = None
 
@@ -74,8 +76,6 @@ class ColourModel:
         return (q[..., 0] * self.bins + q[..., 1]) * self.bins + q[..., 2]
 
     def _histogram(self, rgb: np.ndarray, where: np.ndarray) -> np.ndarray:
-        from scipy.ndimage import gaussian_filter
-
         counts = np.bincount(self._index(rgb)[where], minlength=self.bins ** 3).astype(np.float64)
         h = gaussian_filter(counts.reshape((self.bins,) * 3), 1.0, mode="constant").ravel()
         return h / max(h.sum(), 1e-12)
@@ -90,12 +90,6 @@ class ColourModel:
         """Start from a given instrument mask: its pixels are instrument, a ring around it surroundings."""
         self.instrument = self._histogram(rgb, mask.astype(bool))
         self.surroundings = self._histogram(rgb, self._ring(mask))
-
-    def update(self, rgb: np.ndarray, mask: np.ndarray, not_instrument: np.ndarray) -> None:
-        """Blend in the surroundings seen in a ring around a predicted mask, where ``not_instrument`` holds."""
-        where = self._ring(mask) & not_instrument
-        if self.surroundings is not None and where.sum() >= 50:
-            self.surroundings = (1 - self.rate) * self.surroundings + self.rate * self._histogram(rgb, where)
 
     def posterior(self, rgb: np.ndarray) -> np.ndarray:
         """P(instrument | colour) per pixel, equal priors (0.5 where neither histogram has seen the colour)."""

@@ -90,6 +90,12 @@ def object_origin(points: np.ndarray) -> np.ndarray:
     return points[keep].mean(axis=0)
 
 
+def field_extent(points: np.ndarray) -> np.ndarray:
+    """Size (m, per axis) of the SDF's box around the first frame's masked points: what they show with room for
+    parts seen later; per axis keeps the grid small."""
+    return np.clip(1.5 * np.ptp(points, axis=0) + 0.04, 0.08, 0.6)
+
+
 class SurgTracker:
     """Model-free 6-DoF tracker of one instrument."""
 
@@ -132,9 +138,7 @@ class SurgTracker:
         pts, _ = backproject(frame.depth, frame.K, mask)  # the whole masked cloud, not the filtered subset
         pose = make_T(np.eye(3), object_origin(pts))
         if self.cfg.sdf.enabled:
-            # The box covers what the first frame shows, with room for parts seen later; per axis keeps it small.
-            extent = np.clip(1.5 * np.ptp(pts, axis=0) + 0.04, 0.08, 0.6)
-            self._field = InstrumentSDF(self.cfg.sdf, np.zeros(3), extent)
+            self._field = InstrumentSDF(self.cfg.sdf, np.zeros(3), field_extent(pts))
             self.fitter = (BackgroundFitter(self._field, self.cfg.sdf.refit_iterations, num_threads=1)
                            if self.cfg.sdf.background else None)
         node = self._node(obs, self.extractor(obs), pose)
@@ -177,7 +181,7 @@ class SurgTracker:
                 raise self.fitter.error
             psi = self.fitter.latest() or psi
         psi = psi.copy()
-        psi.refit(self._views())
+        psi.refit(self.views())
         self._field = psi
         mesh = keep_near(psi.mesh(), self.model_points, 2 * self.cfg.sdf.voxel_size)
         return mesh if len(mesh.faces) else None
@@ -384,7 +388,7 @@ class SurgTracker:
         self._remember_points(kf)
         if (len(self.pool) - 1) % self.cfg.sdf.refit_every:
             return
-        views = self._views(self.cfg.sdf.max_views)
+        views = self.views(self.cfg.sdf.max_views)
         if self.fitter is not None:
             self.fitter.submit(views)
         elif self._field is not None:
@@ -397,7 +401,7 @@ class SurgTracker:
         self.model_points = voxel_downsample(pts, 0.002)
         self._model_tree = cKDTree(self.model_points)
 
-    def _views(self, n: int | None = None) -> list[View]:
+    def views(self, n: int | None = None) -> list[View]:
         """The keyframes as SDF views; with ``n``, at most n of them spread evenly over the pool."""
         kfs = self.pool.keyframes
         if n is not None and len(kfs) > n:
