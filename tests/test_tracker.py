@@ -84,3 +84,25 @@ def test_preprocess_points_lie_on_their_pixels_rays(synth_seq):
     obs = preprocess(frame, frame.mask, PreprocessConfig())
     assert obs.n_valid > 300
     np.testing.assert_allclose(obs.xyz[obs.valid], depth_to_xyz(obs.depth, frame.K)[obs.valid], atol=1e-6)
+
+
+def test_a_field_that_disagrees_with_the_frame_stays_out_of_the_graph(synth_seq):
+    """With sdf.agree_tol set, L_SDF joins only while the field fits the frame at its coarse pose."""
+    from scipy.spatial import cKDTree
+
+    from surgtrack.geometry import inv_T, transform
+
+    seq = open_sequence(synth_seq)
+    cfg = TrackerConfig()
+    cfg.sdf.enabled = False
+    cfg.sdf.agree_tol = 0.003
+    tracker = SurgTracker(cfg)
+    tracker.register(seq[0], seq[0].mask)
+    node = tracker.recent[-1]
+    surface = cKDTree(transform(inv_T(node.pose), node.xyz[node.xyz[..., 2] > 0]))
+    tracker.sdf = lambda p: (surface.query(p)[0], np.zeros_like(p))  # |Psi| = distance to the frame's surface
+    assert tracker._field_agrees(node)
+    tracker.sdf = lambda p: (surface.query(p + [0.02, 0.0, 0.0])[0], np.zeros_like(p))  # the same, 2 cm off
+    assert not tracker._field_agrees(node)
+    cfg.sdf.agree_tol = 0.0
+    assert tracker._field_agrees(node)  # off: a converged field always joins

@@ -355,13 +355,26 @@ class SurgTracker:
         nodes += [GraphNode(o.pose, o.xyz, o.normals, o.K_grid, True) for o in others]
         index = {id(o): i + 1 for i, o in enumerate(others)}
         graph_edges = [FeatureEdge(0, index[id(ref)], p_cur, p_ref) for ref, p_ref, p_cur in edges]
-        use_sdf = self.sdf is not None
+        use_sdf = self.sdf is not None and self._field_agrees(node)
         pairs = [p for j in range(1, len(nodes)) for p in ((0, j), (j, 0))]  # the other poses are fixed
         cfg = self.cfg.graph if prior_null is None else replace(self.cfg.graph, prior_null=prior_null)
         poses = optimize_graph(nodes, graph_edges, cfg, self.sdf if use_sdf else None,
                                [0] if use_sdf else [], pairs_2d=pairs,
                                priors=[] if prior is None else [(0, prior)])
         return poses[0]
+
+    def _field_agrees(self, node: _Node) -> bool:
+        """Whether the field fits the frame at its coarse pose well enough to join the graph (L_SDF, eq. 11): the
+        median |Psi| of the frame's points below ``sdf.agree_tol`` (0: always). A field fitted from drifted
+        keyframes otherwise pulls every later pose towards its own error."""
+        tol = self.cfg.sdf.agree_tol
+        if tol <= 0 or self.sdf is None:
+            return self.sdf is not None
+        pts = node.xyz[node.xyz[..., 2] > 0]
+        if len(pts) == 0:
+            return False
+        psi, _ = self.sdf(transform(inv_T(node.pose), pts[:: max(1, len(pts) // 500)]))
+        return float(np.median(np.abs(psi))) < tol
 
     def _model_distances(self, node: _Node) -> np.ndarray:
         """Distance of each of the frame's points, in the object frame, to the model built so far (inf beyond
