@@ -43,7 +43,7 @@ def main() -> None:
     t_track = time.perf_counter() - t
     views = tracker.views()
     points, _ = backproject(first.depth, first.K, first.mask)
-    sdf = InstrumentSDF(TrackerConfig().sdf, np.zeros(3), field_extent(points))
+    sdf = InstrumentSDF(cfg.sdf, np.zeros(3), field_extent(points))
     t = time.perf_counter()
     sdf.init_tsdf(views)
     t_init = time.perf_counter() - t

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from surgtrack.geometry import inv_T
 from surgtrack.masking import ColourModel, predict_mask, search_mask
 
 K = np.array([[200.0, 0, 80], [0, 200.0, 60], [0, 0, 1]])
@@ -53,7 +52,7 @@ def test_predicted_mask_does_not_grow_into_a_hand_at_the_instruments_depth():
     points = bar_points(mask, depth)
     pose = np.eye(4)
     plain = predict_mask(points, pose, K, depth2, 6, 0.01)
-    gated = predict_mask(points, pose, K, depth2, 6, 0.01, colours.posterior(rgb2), (0.0, 0.25))
+    gated = predict_mask(points, pose, K, depth2, 6, 0.01, rgb2, colours, 0.25)
     assert (plain & hand).sum() > 50  # depth alone takes the touching hand in
     assert not (gated & hand).any()
     assert (gated & mask).sum() >= 0.95 * mask.sum()  # the instrument itself is all kept
@@ -75,7 +74,7 @@ def test_search_mask_finds_the_nearest_instrument_coloured_region_of_plausible_s
     depth2[moved] = 0.32
     depth2[tray] = 0.45
     rgb2[5, 150] = GREY
-    last = inv_T(np.eye(4))[:3, 3] + np.array([0.0, 0.0, 0.3])  # last seen at the image centre, 0.3 m
+    last = np.array([0.0, 0.0, 0.3])  # last seen at the image centre, 0.3 m
     found = search_mask(colours.posterior(rgb2), depth2, K, last, 0.5, 0.6, (40, 3 * int(mask.sum())))
     assert (found == moved).all()  # the tray is too big to be the instrument
     assert not search_mask(colours.posterior(rgb2), depth2, K, last, 0.05, 0.6, (40, 6000)).any()  # out of reach

@@ -9,9 +9,11 @@ from scipy.ndimage import gaussian_filter
 
 from .geometry import depth_to_xyz, project, transform
 
+SPLAT = 2  # pixels each model point covers around its projection (render_depth)
+
 
 def render_depth(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, shape: tuple[int, int],
-                 splat: int = 2) -> np.ndarray:
+                 splat: int = SPLAT) -> np.ndarray:
     """Z-buffered depth of model points seen at ``pose`` (0 where nothing projects); points are splatted to
     (2 * splat + 1)^2 pixels so a sparse model renders as a closed surface."""
     h, w = shape
@@ -32,29 +34,28 @@ def render_depth(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, shape:
 
 
 def predict_mask(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, depth: np.ndarray,
-                 margin: int, tol: float, posterior: np.ndarray | None = None,
-                 min_posterior: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+                 margin: int, tol: float, rgb: np.ndarray | None = None, colour: ColourModel | None = None,
+                 min_posterior: float = 0.0) -> np.ndarray:
     """Mask of the instrument at a predicted pose: observed depth within ``tol`` of the model's depth nearby.
 
     The model depth is spread over ``margin`` pixels to absorb the prediction's error; observed depth more than
-    ``tol`` in front of the model (an occluder) or behind it (background) is left out. With ``posterior`` (per
-    pixel, of the colour being instrument's: `ColourModel`), pixels on the rendered model must reach
-    ``min_posterior[0]``, and those beyond its silhouette ``min_posterior[1]``, so the mask grows into neither a
-    hand nor tissue at the instrument's depth."""
+    ``tol`` in front of the model (an occluder) or behind it (background) is left out. With a ``colour`` model
+    (and the frame's ``rgb``), the pixels beyond the rendered model's own silhouette must also have a colour
+    posterior of at least ``min_posterior``, so the mask grows into neither a hand nor tissue at the instrument's
+    depth; only those pixels are looked up."""
     model = render_depth(points_obj, pose, K, depth.shape)
     if not (model > 0).any():
         return np.zeros(depth.shape, bool)
-    near = np.where(model > 0, model, 0).astype(np.float32)
-    far = np.where(model > 0, model, 0).astype(np.float32)
     kernel = np.ones((2 * margin + 1,) * 2, np.uint8)
-    big = np.float32(1e3)
-    zmin = -cv2.dilate(-np.where(near > 0, near, big), kernel)
-    zmax = cv2.dilate(far, kernel)
-    covered = zmax > 0
-    if posterior is not None:
-        core = cv2.erode((model > 0).astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
-        covered &= posterior >= np.where(core, *min_posterior)
-    return covered & (depth > 0) & (depth > zmin - tol) & (depth < zmax + tol)
+    zmin = -cv2.dilate(-np.where(model > 0, model, np.float32(1e3)), kernel)
+    zmax = cv2.dilate(model, kernel)
+    mask = (zmax > 0) & (depth > 0) & (depth > zmin - tol) & (depth < zmax + tol)
+    if colour is not None and rgb is not None:
+        # the splat's own rim is not the model's silhouette: erode it away
+        core = cv2.erode((model > 0).astype(np.uint8), np.ones((2 * SPLAT + 1,) * 2, np.uint8)).astype(bool)
+        band = mask & ~core
+        mask[band] = colour.posterior(rgb[band]) >= min_posterior
+    return mask
 
 
 class ColourModel:
@@ -92,10 +93,11 @@ class ColourModel:
         self.surroundings = self._histogram(rgb, self._ring(mask))
 
     def posterior(self, rgb: np.ndarray) -> np.ndarray:
-        """P(instrument | colour) per pixel, equal priors (0.5 where neither histogram has seen the colour)."""
+        """P(instrument | colour) for each RGB triple of ``rgb`` (..., 3), equal priors (0.5 where neither
+        histogram has seen the colour, and before `learn`)."""
         eps = 0.5 / self.bins ** 3  # half a uniform bin: a colour neither histogram has seen stays near 0.5
         if self.instrument is None or self.surroundings is None:
-            return np.full(rgb.shape[:2], 0.5)
+            return np.full(rgb.shape[:-1], 0.5)
         f = self.instrument[self._index(rgb)] + eps
         b = self.surroundings[self._index(rgb)] + eps
         return f / (f + b)

@@ -299,7 +299,7 @@ class SurgTracker:
             node = self._node(obs, feats, orthonormalize(pose))
             node.pose = orthonormalize(self._optimise(node, list(edges), last, self.cfg.failure.relocalise_prior_null))
             motion = inv_T(last) @ node.pose
-            if np.linalg.norm(motion[:3, 3]) > self.cfg.ransac.max_jump_trans * (self.frames_lost + 1):
+            if np.linalg.norm(motion[:3, 3]) > self._reach(obs.frame.index):
                 continue
             move = np.linalg.norm(motion[:3, 3]) + 0.1 * np.radians(rotation_angle_deg(motion[:3, :3]))
             scored.append((self._fit_error(node), move, (node.pose, edges, inliers)))
@@ -317,6 +317,11 @@ class SurgTracker:
         if self.cfg.graph.enabled and self.frames_lost <= self.cfg.failure.relocalise_window:
             cands.append((last, [], 0))
         return self._best_candidate(obs, feats, cands, last)
+
+    def _reach(self, index: int) -> float:
+        """How far (m) the instrument's origin can have moved since the last tracked frame, by frame ``index``:
+        the physical per-frame bound times the frames between."""
+        return self.cfg.ransac.max_jump_trans * (index - self.recent[-1].index)
 
     def _predicted_pose(self) -> np.ndarray:
         """Constant-velocity prediction from the last two tracked frames when they are consecutive (a gap, such
@@ -368,8 +373,8 @@ class SurgTracker:
         median |Psi| of the frame's points below ``sdf.agree_tol`` (0: always). A field fitted from drifted
         keyframes otherwise pulls every later pose towards its own error."""
         tol = self.cfg.sdf.agree_tol
-        if tol <= 0 or self.sdf is None:
-            return self.sdf is not None
+        if tol <= 0:
+            return True
         pts = node.xyz[node.xyz[..., 2] > 0]
         if len(pts) == 0:
             return False
@@ -432,18 +437,14 @@ class SurgTracker:
         if self.model_points is None:
             return np.zeros(frame.depth.shape, bool)
         pre = self.cfg.preprocess
-        posterior = None
-        if pre.predicted_mask_colour > 0 and self.colour.instrument is not None:
-            posterior = self.colour.posterior(frame.rgb)
-            if self.lost:  # look for the instrument's colour where it can have moved since it was last seen
-                last = self.recent[-1]
-                seen = max(int(self.pool.keyframes[-1].mask.sum()), self.cfg.failure.min_pixels)
-                reach = self.cfg.ransac.max_jump_trans * (frame.index - last.index)
-                return search_mask(posterior, frame.depth, frame.K, last.pose[:3, 3], reach, pre.search_mask_colour,
-                                   (self.cfg.failure.min_pixels, 3 * seen))
-        return predict_mask(self.model_points, self.recent[-1].pose, frame.K, frame.depth,
-                            pre.predicted_mask_margin, pre.predicted_mask_tol, posterior,
-                            (0.0, pre.predicted_mask_colour))
+        colour = self.colour if pre.predicted_mask_colour > 0 else None
+        if self.lost and colour is not None:  # look for the instrument's colour where it can have moved
+            seen = max(int(self.pool.keyframes[-1].mask.sum()), self.cfg.failure.min_pixels)
+            return search_mask(colour.posterior(frame.rgb), frame.depth, frame.K, self.recent[-1].pose[:3, 3],
+                               self._reach(frame.index), pre.search_mask_colour,
+                               (self.cfg.failure.min_pixels, 3 * seen))
+        return predict_mask(self.model_points, self.recent[-1].pose, frame.K, frame.depth, pre.predicted_mask_margin,
+                            pre.predicted_mask_tol, frame.rgb, colour, pre.predicted_mask_colour)
 
     def _lose(self, clock: _Clock, confidence: float = 0.0) -> TrackResult:
         self.lost = True
