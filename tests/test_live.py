@@ -291,6 +291,20 @@ def test_live_without_camera_or_file_is_a_one_line_error():
     assert_one_line_error(cli("live", "--box", "0,0,10,10", "--no-igtl"), "no RealSense camera")
 
 
+def test_track_switches_override_the_config_file_and_only_when_given(synth_seq: Path, tmp_path: Path):
+    cfg = TrackerConfig()
+    cfg.sdf.enabled = False
+    cfg.ransac.features = "orb"
+    cfg.pool.enabled = False
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps(cfg.to_dict()))
+    run = cli("track", synth_seq, "--out", tmp_path / "out", "--config", path, "--no-occ-surf")
+    assert run.exit_code == 0, run.output
+    used = json.loads((tmp_path / "out" / "config.json").read_text())
+    assert used["ransac"]["features"] == "orb" and not used["pool"]["enabled"]  # the file's choices stand
+    assert not used["sdf"]["occ_surf"] and used["graph"]["enabled"]
+
+
 def test_track_writes_an_overlay_video(synth_seq: Path, fast_config: Path, tmp_path: Path):
     video = tmp_path / "overlay.mp4"
     run = cli("track", synth_seq, "--out", tmp_path / "out", "--video", video, "--config", fast_config)

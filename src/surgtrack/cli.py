@@ -143,7 +143,8 @@ def eval_cmd(
 
 
 def load_config(path: Path | None, **overrides: object):
-    """Tracker config from an optional JSON file (TrackerConfig.to_dict layout), then command-line switches."""
+    """Tracker config from an optional JSON file (TrackerConfig.to_dict layout), then the command-line switches
+    that were given (None: not given)."""
     import json
 
     from .config import TrackerConfig
@@ -155,6 +156,8 @@ def load_config(path: Path | None, **overrides: object):
         except (OSError, ValueError, TypeError) as e:
             fail(f"{path}: bad config ({e})")
     for key, value in overrides.items():
+        if value is None:  # a switch not given: the file's (or the default) value stands
+            continue
         section, name = key.split(".")
         setattr(getattr(cfg, section), name, value)
     return cfg
@@ -165,9 +168,10 @@ def track(
     seq: Annotated[Path, typer.Argument(help="sequence folder (rgb/ depth/ masks/ cam_K.txt, or a BOP scene)")],
     out: Annotated[Path, typer.Option("--out", "-o", help="output folder")],
     first_mask_only: Annotated[bool, typer.Option(help="use only the first frame's mask, make the rest")] = False,
-    features: Annotated[str, typer.Option(help="sift | orb | xfeat")] = "sift",
+    features: Annotated[str | None, typer.Option(help="sift | orb | xfeat  [default: sift, or --config's]")] = None,
     no_memory_pool: Annotated[bool, typer.Option("--no-memory-pool", help="ablation: adjacent frames only")] = False,
     no_graph: Annotated[bool, typer.Option("--no-graph", help="ablation: RANSAC + Kabsch only")] = False,
+    no_occ_surf: Annotated[bool, typer.Option("--no-occ-surf", help="ablation: SDF without L_occ and L_surf")] = False,
     depth_scale: Annotated[float, typer.Option(help="metres per depth unit")] = 0.001,
     config: Annotated[Path | None, typer.Option(help="JSON config (see OUT/config.json of any run)")] = None,
     video: Annotated[Path | None, typer.Option(help="also write an overlay video (model outline, axes, lost frames)")]
@@ -182,8 +186,9 @@ def track(
     from .pipeline import track_sequence
     from .tracker import SurgTracker
 
-    cfg = load_config(config, **{"ransac.features": features, "pool.enabled": not no_memory_pool,
-                                 "graph.enabled": not no_graph})
+    cfg = load_config(config, **{"ransac.features": features, "pool.enabled": False if no_memory_pool else None,
+                                 "graph.enabled": False if no_graph else None,
+                                 "sdf.occ_surf": False if no_occ_surf else None})
     sequence = open_sequence(seq, depth_scale=depth_scale)
     tracker = SurgTracker(cfg, model=_load_model(model, cfg) if model is not None else None)
     overlay = _OverlayWriter(video, tracker) if video is not None else None
