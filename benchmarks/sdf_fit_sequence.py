@@ -22,7 +22,7 @@ from surgtrack.geometry import backproject, inv_T
 from surgtrack.io import open_sequence
 from surgtrack.metrics import chamfer_cm
 from surgtrack.registration import InstrumentSDF, keep_near
-from surgtrack.tracker import SurgTracker, field_extent
+from surgtrack.tracker import SurgTracker, field_box
 
 
 def main() -> None:
@@ -43,7 +43,8 @@ def main() -> None:
     t_track = time.perf_counter() - t
     views = tracker.views()
     points, _ = backproject(first.depth, first.K, first.mask)
-    sdf = InstrumentSDF(cfg.sdf, np.zeros(3), field_extent(points))
+    R, extent = field_box(points)
+    sdf = InstrumentSDF(cfg.sdf, np.zeros(3), extent, rotation=R)
     t = time.perf_counter()
     sdf.init_tsdf(views)
     t_init = time.perf_counter() - t

@@ -107,6 +107,7 @@ def test_round_trip_preserves_keyframes_sdf_and_mesh(scanned, tmp_path):
     assert sdf is not None and sdf2 is not None and sdf.fitted and sdf2.fitted
     assert sdf2.grid.shape == sdf.grid.shape and sdf2.grid.voxel == sdf.grid.voxel
     np.testing.assert_array_equal(sdf2.grid.origin, sdf.grid.origin)
+    np.testing.assert_array_equal(sdf2.rotation, sdf.rotation)
     assert sdf2.cfg == sdf.cfg and sdf2.converged == sdf.converged
     rng = np.random.default_rng(0)
     pts = rng.uniform(sdf.grid.origin, sdf.grid.upper, (2000, 3))
@@ -173,6 +174,18 @@ def test_newer_format_version_is_refused(scanned, tmp_path):
                             "upgrade surgtrack")
 
 
+def test_version_1_file_reads_with_an_axis_aligned_grid(scanned, tmp_path):
+    """Version 1 files have no SDF rotation: their grid is the object frame's, so they load as before."""
+    model, path = scanned
+    meta = read_meta(path)
+    meta["version"] = 1
+    del meta["sdf"]["rotation"]
+    old = load_model(rewrite(path, tmp_path / "v1.stm", meta=meta))
+    np.testing.assert_array_equal(old.sdf.rotation, np.eye(3))
+    assert not np.allclose(model.sdf.rotation, np.eye(3))  # the scan's box follows the instrument
+    np.testing.assert_array_equal(old.sdf.grid.origin, model.sdf.grid.origin)
+
+
 def _truncated(path: Path, dst: Path) -> Path:
     dst.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
     return dst
@@ -204,6 +217,12 @@ def _wrong_shape(path: Path, dst: Path) -> Path:
     return rewrite(path, dst, members={"sdf/psi.npy": npy(psi)})
 
 
+def _bad_rotation(path: Path, dst: Path) -> Path:
+    meta = read_meta(path)
+    meta["sdf"]["rotation"] = (2 * np.eye(3)).tolist()
+    return rewrite(path, dst, meta=meta)
+
+
 def _wrong_grid(path: Path, dst: Path) -> Path:
     return rewrite(path, dst, members={"keyframes/000/grid_xyz.npy": npy(np.zeros((5, 5, 3), np.float32))})
 
@@ -225,6 +244,7 @@ def _flipped_byte(path: Path, dst: Path) -> Path:
     (_other_format, "not a surgtrack model (meta.json format is not 'surgtrack-model')"),
     (_missing_array, "corrupt surgtrack model: keyframes/001/features_desc.npy is missing"),
     (_wrong_shape, "corrupt surgtrack model: sdf/psi.npy has shape 4x4x4, expected "),
+    (_bad_rotation, "corrupt surgtrack model: SDF rotation is not a rotation matrix"),
     (_wrong_grid, "corrupt surgtrack model: keyframes/000/grid_xyz.npy has shape 5x5x3"),
     (_flipped_byte, "corrupt surgtrack model: cannot read sdf/psi.npy"),
 ])
@@ -279,7 +299,7 @@ def test_register_then_track_another_video(synth_seq, second_video, tmp_path):
     scan_dir = tmp_path / "endoscope_register"
     assert (scan_dir / "mesh.ply").is_file() and len(list((scan_dir / "ob_in_cam").iterdir())) == 30
     meta = read_meta(model)
-    assert meta["format"] == "surgtrack-model" and meta["version"] == 1 and meta["sdf"]["voxel"] == 0.006
+    assert meta["format"] == "surgtrack-model" and meta["version"] == VERSION and meta["sdf"]["voxel"] == 0.006
     loaded = load_model(model)
     assert len(loaded.keyframes) >= 4 and loaded.sdf is not None and loaded.mesh is not None
     assert not np.allclose(loaded.K, open_sequence(second_video)[0].K)  # another camera

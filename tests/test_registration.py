@@ -112,14 +112,25 @@ def sphere_fit() -> tuple[InstrumentSDF, list[View], dict]:
     return sdf, views, report
 
 
-@pytest.mark.parametrize("shape", ["sphere", "capsule"])
+def inclined() -> np.ndarray:
+    """A rotation that tilts the capsule's axis out of every coordinate plane."""
+    return trimesh.transformations.euler_matrix(0.3, -0.5, 0.7)[:3, :3]
+
+
+@pytest.mark.parametrize("shape", ["sphere", "capsule", "inclined capsule"])
 def test_fit_recovers_analytic_shape(shape: str, sphere_fit) -> None:
     if shape == "sphere":
         sdf, mesh_true, true_sdf = sphere_fit[0], sphere_mesh(), sphere_sdf
     else:
-        mesh_true, true_sdf = capsule_mesh(), capsule_sdf
+        mesh_true, true_sdf, rotation = capsule_mesh(), capsule_sdf, None
+        if shape == "inclined capsule":
+            # The box follows the capsule (its axes are the capsule's): a 30 x 14 x 14 lattice, where an
+            # axis-aligned box around the inclined capsule would need about 4 times as many nodes.
+            Q = inclined()
+            mesh_true = capsule_mesh().apply_transform(make_T(Q, np.zeros(3)))
+            true_sdf, rotation = (lambda p: capsule_sdf(p @ Q)), Q.T
         views = ring(mesh_true)
-        sdf = InstrumentSDF(small_cfg(), np.zeros(3), np.array([0.09, 0.04, 0.04]), device="cpu")
+        sdf = InstrumentSDF(small_cfg(), np.zeros(3), np.array([0.09, 0.04, 0.04]), device="cpu", rotation=rotation)
         sdf.init_tsdf(views)
         sdf.fit(views)
     assert sdf.fitted and sdf.converged

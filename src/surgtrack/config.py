@@ -109,7 +109,7 @@ class SDFConfig:
     max_views: int = 12  # keyframes (evenly spread over the pool) an incremental refit uses; the final fit uses all
     refit_iterations: int = 60  # Adam steps of a warm-started incremental refit
     min_keyframes: int = 4  # L_SDF joins the posture graph once the field is converged on at least this many
-    agree_tol: float = 0.0  # m; > 0: L_SDF joins a frame only while its points' median |Psi| is below this (0: off)
+    agree_tol: float = 0.003  # m; L_SDF joins a frame only while its points' median |Psi| is below this (0: always)
     background: bool = True  # refit on a worker thread (tracking never waits); False refits in line (reproducible)
 
 

@@ -1,17 +1,20 @@
 """The registered instrument model: what `surgtrack register` writes and `surgtrack track --model` reads.
 
 A model is one file, by convention ``NAME.stm``: a zip archive (deflate-compressed members) holding ``meta.json``
-and arrays in NumPy's ``.npy`` format (read without pickle). Format version 1:
+and arrays in NumPy's ``.npy`` format (read without pickle). Format version 2:
 
-    meta.json                          {"format": "surgtrack-model", "version": 1, "created_by": "surgtrack X.Y.Z",
+    meta.json                          {"format": "surgtrack-model", "version": 2, "created_by": "surgtrack X.Y.Z",
                                         "created": ISO 8601 time, "info": {...} (source sequence, frames, ...),
                                         "config": TrackerConfig.to_dict() of the scan, "K": 3x3 intrinsics,
                                         "units": "metres", "depth_unit_m": 0.001,
-                                        "sdf": null | {"origin", "voxel", "shape", "fitted", "converged", "config"},
+                                        "sdf": null | {"origin", "rotation", "voxel", "shape", "fitted",
+                                                       "converged", "config"},
                                         "mesh": {"vertices": V, "faces": F},
                                         "keyframes": [{"id", "pose" (4x4 object-to-camera), "K", "K_grid",
                                                        "image_size" [H, W], "grid_size" [h, w], "features" N}, ...]}
-    sdf/psi.npy                        float16 (nx, ny, nz): Psi / truncation on the grid nodes (truncation in the
+    sdf/psi.npy                        float16 (nx, ny, nz): Psi / truncation on the grid nodes, node (i, j, k) at
+                                       R^T (origin + voxel (i, j, k)) in the object frame, R the 3x3 "rotation"
+                                       (the box's axes as rows; version 1 files have none: identity) (truncation in the
                                        sdf config); relative rounding below 2^-11, 5 um at twice the truncation
     sdf/weight.npy                     float32 (nx, ny, nz): TSDF fusion weights (sdf/ is absent when sdf is null)
     mesh/vertices.npy                  float32 (V, 3), object frame, metres (marching cubes of Psi)
@@ -53,7 +56,7 @@ from .memory_pool import Keyframe
 from .registration import InstrumentSDF
 
 FORMAT = "surgtrack-model"
-VERSION = 1
+VERSION = 2
 DEPTH_UNIT_M = 0.001
 ID_PREFIX = "model:"
 
@@ -117,7 +120,8 @@ def save_model(model: InstrumentModel, path: str | Path) -> Path:
         state = model.sdf.state_dict()
         arrays["sdf/psi.npy"] = np.clip(state["psi"] / model.sdf.cfg.truncation, -6e4, 6e4).astype(np.float16)
         arrays["sdf/weight.npy"] = np.asarray(state["weight"], np.float32)
-        sdf_meta = {"origin": [float(x) for x in state["origin"]], "voxel": float(state["voxel"]),
+        sdf_meta = {"origin": [float(x) for x in state["origin"]], "rotation": _list(state["rotation"]),
+                    "voxel": float(state["voxel"]),
                     "shape": list(arrays["sdf/psi.npy"].shape), "fitted": bool(model.sdf.fitted),
                     "converged": bool(model.sdf.converged), "config": asdict(model.sdf.cfg)}
     mesh = model.mesh if model.mesh is not None else (model.sdf.mesh() if model.sdf is not None else None)
@@ -318,12 +322,16 @@ def _build(r: _Reader, meta: dict, device: str | None) -> InstrumentModel:
             "psi": r.array("sdf/psi.npy", shape, ("float16",)).astype(np.float32) * np.float32(cfg.truncation),
             "weight": r.array("sdf/weight.npy", shape, ("float32",)),
             "origin": _vector(r, sm["origin"]),
+            "rotation": (_matrix(r, sm["rotation"], (3, 3), "SDF rotation") if "rotation" in sm else np.eye(3)),
             "voxel": np.float64(sm["voxel"]),
             "flags": np.array([bool(sm["fitted"]), bool(sm["converged"])]),
             "cfg": np.array(json.dumps(asdict(cfg))),
         }
         if not state["voxel"] > 0:
             raise r.fail(f"corrupt surgtrack model: SDF voxel size {sm['voxel']} is not positive")
+        R = state["rotation"]
+        if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+            raise r.fail("corrupt surgtrack model: SDF rotation is not a rotation matrix")
         sdf = InstrumentSDF.from_state_dict(state, device=device)
     mm = meta.get("mesh") or {"vertices": 0, "faces": 0}
     verts = r.array("mesh/vertices.npy", (int(mm["vertices"]), 3), ("float32",))

@@ -34,7 +34,7 @@ import json
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -162,16 +162,23 @@ def keep_near(mesh: trimesh.Trimesh, points: np.ndarray, dist: float) -> trimesh
 class InstrumentSDF:
     """Dense-grid signed distance field Psi of the instrument in the object frame (paper eq. 1).
 
-    `center` and `extent` (side length, scalar or per axis, metres) set the box the grid covers; the voxel is
-    `cfg.voxel_size`. The grid runs on CUDA when torch sees one unless `device` says otherwise.
+    `center` (object frame) and `extent` (side length, scalar or per axis, metres) set the box the grid covers; the
+    voxel is `cfg.voxel_size`. `rotation` R (3x3, default identity) orients the box: its axes are the rows of R, so
+    a lattice node g in the grid frame is the object-frame point R^T g. A box along an elongated instrument holds
+    far fewer voxels than an axis-aligned one around it. The grid runs on CUDA when torch sees one unless `device`
+    says otherwise.
     """
 
     def __init__(
-        self, cfg: SDFConfig, center: np.ndarray, extent: float | np.ndarray, device: str | torch.device | None = None
+        self, cfg: SDFConfig, center: np.ndarray, extent: float | np.ndarray, device: str | torch.device | None = None,
+        rotation: np.ndarray | None = None,
     ):
         self.cfg = cfg
         self.device = pick_device(device)
-        self.grid = Grid.around(np.asarray(center, dtype=np.float64), extent, cfg.voxel_size)
+        self.rotation = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64).reshape(3, 3)
+        if not np.allclose(self.rotation @ self.rotation.T, np.eye(3), atol=1e-6) or np.linalg.det(self.rotation) < 0:
+            raise ValueError("InstrumentSDF rotation is not a rotation matrix")
+        self.grid = Grid.around(self.rotation @ np.asarray(center, dtype=np.float64), extent, cfg.voxel_size)
         self.psi = torch.ones(self.grid.shape, device=self.device)  # Psi / truncation
         self.weight = torch.zeros(self.grid.shape, device=self.device)
         self.fitted = False
@@ -180,10 +187,19 @@ class InstrumentSDF:
         self._host: np.ndarray | None = None
 
     # -- fitting -----------------------------------------------------------------------------------------------
+    def _in_grid(self, views: list[View]) -> list[View]:
+        """The views posed in the grid frame (x_cam = pose @ T x_grid, T the object-from-grid rotation)."""
+        if np.array_equal(self.rotation, np.eye(3)):
+            return views
+        T = np.eye(4)
+        T[:3, :3] = self.rotation.T
+        return [replace(v, pose=v.pose @ T) for v in views]
+
     def init_tsdf(self, views: list[View]) -> None:
         """Initialise Psi by TSDF fusion of the views (occlusion-aware unless cfg.occ_surf is False)."""
         c = self.cfg
-        self.psi, self.weight = fuse_tsdf(views, self.grid, c.truncation, c.occ_surf, c.occ_dilate, self.device)
+        self.psi, self.weight = fuse_tsdf(self._in_grid(views), self.grid, c.truncation, c.occ_surf, c.occ_dilate,
+                                          self.device)
         self._host = None
 
     def refit(self, views: list[View], iterations: int | None = None,
@@ -193,7 +209,8 @@ class InstrumentSDF:
             self.init_tsdf(views)
         else:
             c = self.cfg
-            psi, weight = fuse_tsdf(views, self.grid, c.truncation, c.occ_surf, c.occ_dilate, self.device)
+            psi, weight = fuse_tsdf(self._in_grid(views), self.grid, c.truncation, c.occ_surf, c.occ_dilate,
+                                    self.device)
             new = (self.weight == 0) & (weight > 0)
             self.psi = torch.where(new, psi, self.psi)
             self.weight = torch.maximum(self.weight, weight)
@@ -306,7 +323,7 @@ class InstrumentSDF:
         """
         t0 = time.perf_counter()
         n_iter = self.cfg.iterations if iterations is None else int(iterations)
-        rays = _gather_rays(views, self.grid, self.cfg, self.device)
+        rays = _gather_rays(self._in_grid(views), self.grid, self.cfg, self.device)
         gen = torch.Generator(device=self.device)
         gen.manual_seed(seed)
         param = self.psi.detach().clone().requires_grad_(True)
@@ -354,7 +371,7 @@ class InstrumentSDF:
         Outside the grid box Psi is the value at the nearest box point plus the distance to the box.
         """
         vol = self.values()
-        p = np.asarray(points_obj, dtype=np.float64).reshape(-1, 3)
+        p = np.asarray(points_obj, dtype=np.float64).reshape(-1, 3) @ self.rotation.T  # grid frame
         n = np.array(self.grid.shape)
         lo, hi = self.grid.origin, self.grid.upper
         pc = np.clip(p, lo, hi)
@@ -389,7 +406,7 @@ class InstrumentSDF:
         if far.any():
             val[far] += dist[far]
             grad[far] = out[far] / dist[far, None]
-        return val, grad
+        return val, grad @ self.rotation
 
     def mesh(self, keep_frac: float = 0.1) -> trimesh.Trimesh:
         """Zero level set by marching cubes (object frame, metres), outward normals; connected components with less
@@ -399,7 +416,7 @@ class InstrumentSDF:
             return trimesh.Trimesh()
         v = self.grid.voxel
         verts, faces, _, _ = measure.marching_cubes(vol, level=0.0, spacing=(v, v, v))
-        m = trimesh.Trimesh(verts + self.grid.origin, faces, process=True)
+        m = trimesh.Trimesh((verts + self.grid.origin) @ self.rotation, faces, process=True)
         parts = m.split(only_watertight=False)
         if len(parts) > 1:
             areas = np.array([p.area for p in parts])
@@ -419,14 +436,16 @@ class InstrumentSDF:
             "psi": self.values().copy(),
             "weight": self.weight.detach().cpu().numpy().astype(np.float32),
             "origin": self.grid.origin.copy(),
+            "rotation": self.rotation.copy(),
             "voxel": np.float64(self.grid.voxel),
             "flags": np.array([self.fitted, self.converged]),
             "cfg": np.array(json.dumps(asdict(self.cfg))),
         }
 
     def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
-        """Restore a `state_dict`; the lattice is taken from the state."""
+        """Restore a `state_dict`; the lattice (and its rotation, identity when absent) is taken from the state."""
         psi = np.asarray(state["psi"], dtype=np.float32)
+        self.rotation = np.asarray(state.get("rotation", np.eye(3)), dtype=np.float64).reshape(3, 3)
         self.grid = Grid(
             origin=np.asarray(state["origin"], dtype=np.float64),
             voxel=float(state["voxel"]),
@@ -444,7 +463,8 @@ class InstrumentSDF:
         origin = np.asarray(state["origin"], dtype=np.float64)
         voxel = float(state["voxel"])
         extent = (np.array(psi.shape) - 1) * voxel
-        sdf = cls(cfg, origin + extent / 2, extent, device=device)
+        rotation = np.asarray(state.get("rotation", np.eye(3)), dtype=np.float64).reshape(3, 3)
+        sdf = cls(cfg, rotation.T @ (origin + extent / 2), extent, device=device, rotation=rotation)
         sdf.load_state_dict(state)
         return sdf
 

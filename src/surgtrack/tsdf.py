@@ -69,7 +69,8 @@ def occluder_pixels(view: View, truncation: float) -> np.ndarray:
 
 @dataclass
 class Grid:
-    """Axis-aligned dense voxel lattice in the object frame: node (i, j, k) sits at origin + voxel * (i, j, k)."""
+    """Axis-aligned dense voxel lattice in the grid's frame (the object frame, or a rotation of it that
+    `InstrumentSDF` keeps): node (i, j, k) sits at origin + voxel * (i, j, k)."""
 
     origin: np.ndarray  # (3,) metres
     voxel: float  # metres
