@@ -106,3 +106,28 @@ def test_a_field_that_disagrees_with_the_frame_stays_out_of_the_graph(synth_seq)
     assert not tracker._field_agrees(node)
     cfg.sdf.agree_tol = 0.0
     assert tracker._field_agrees(node)  # off: a converged field always joins
+
+
+def test_keyframe_poses_refined_with_the_field_stay_within_bounds(synth_seq, tmp_path):
+    """sdf.refine_poses: the keyframes take the poses fitted jointly with Psi, the first fixed, each within the
+    bound of its tracked pose, and tracking stays as accurate."""
+    from surgtrack.geometry import inv_T, rotation_angle_deg
+
+    seq = open_sequence(synth_seq)
+    cfg = TrackerConfig()
+    cfg.sdf.background = False
+    cfg.sdf.refine_poses = True
+    tracker = SurgTracker(cfg)
+    track_sequence(seq, tmp_path / "out", cfg, tracker=tracker)
+    kfs = tracker.pool.keyframes
+    assert len(kfs) >= 4
+    np.testing.assert_array_equal(kfs[0].pose, kfs[0].tracked_pose)
+    moved = 0
+    for kf in kfs[1:]:
+        step = inv_T(kf.tracked_pose) @ kf.pose
+        assert np.linalg.norm(step[:3, 3]) <= np.sqrt(3) * cfg.sdf.refine_trans + 1e-9
+        assert rotation_angle_deg(step[:3, :3]) <= np.sqrt(3) * cfg.sdf.refine_rot_deg + 1e-6
+        moved += not np.allclose(kf.pose, kf.tracked_pose)
+    assert moved == len(kfs) - 1
+    m = evaluate(tmp_path / "out", seq)
+    assert m["add_s_auc"] >= 85 and m["add_auc"] >= 70, (m["add_s_auc"], m["add_auc"])

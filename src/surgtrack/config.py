@@ -111,6 +111,10 @@ class SDFConfig:
     min_keyframes: int = 4  # L_SDF joins the posture graph once the field is converged on at least this many
     agree_tol: float = 0.003  # m; L_SDF joins a frame only while its points' median |Psi| is below this (0: always)
     background: bool = True  # refit on a worker thread (tracking never waits); False refits in line (reproducible)
+    refine_poses: bool = False  # refine the keyframe poses jointly with Psi (first keyframe fixed), within bounds:
+    refine_trans: float = 0.005  # m, the most a refined keyframe pose moves from its tracked one (per axis)
+    refine_rot_deg: float = 3.0  # degrees, the most it turns (per axis of the rotation vector)
+    refine_lr: float = 0.02  # Adam step of the pose parameters (tanh space: a fraction of the bound)
 
 
 @dataclass

@@ -29,6 +29,11 @@ class Keyframe:
     depth: np.ndarray  # (H, W) metres, full resolution, for the SDF fit
     mask: np.ndarray  # (H, W) bool
     K: np.ndarray
+    tracked_pose: np.ndarray | None = None  # the pose tracking gave it (pose may be refined with the SDF since)
+
+    def __post_init__(self) -> None:
+        if self.tracked_pose is None:
+            self.tracked_pose = self.pose.copy()
 
     @property
     def view_dir(self) -> np.ndarray:

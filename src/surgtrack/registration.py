@@ -18,6 +18,11 @@ keyframes (`surgtrack.tsdf`) and is refined by Adam on
   (they may graze it). Rays of occluders give free space only in front of the occluder.
 - L_eik: mean of (|grad Psi| - 1)^2 over grid nodes with |Psi| < 2 truncation (central differences).
 
+With ``cfg.refine_poses`` the keyframe poses are refined jointly with Psi, as BundleSDF does: each view but the
+first gets a rigid correction D_i of the object frame (rotation vector and translation, each component bounded by
+tanh to ``refine_rot_deg`` / ``refine_trans``), applied to its rays' samples, and Adam minimises L over Psi and the
+D_i together. The refined pose is xi_i D_i^-1.
+
 Sign convention: Psi > 0 outside the instrument (towards the camera), Psi < 0 inside, metres: on a ray
 Psi(v) ~ d_Delta - d_v. Residuals and losses are computed in units of the truncation (the grid stores Psi / truncation).
 
@@ -55,8 +60,32 @@ class _Rays:
     """Rays of a set of views that cross the grid box, on the fitting device."""
 
     def __init__(self, surf: dict[str, torch.Tensor], other: dict[str, torch.Tensor]):
-        self.surf = surf  # o, d (direction with unit camera z), depth, znear
-        self.other = other  # o, d, depth (0 invalid), znear, zfar, code
+        self.surf = surf  # o, d (direction with unit camera z), depth, znear, cos, view (index)
+        self.other = other  # o, d, depth (0 invalid), znear, zfar, code, view
+
+
+class _PoseCorrections:
+    """Bounded rigid corrections D_i of the views (grid frame), view 0 fixed: x -> R_i x + t_i."""
+
+    def __init__(self, n: int, cfg: SDFConfig, device: torch.device):
+        self.xi = torch.zeros((n, 6), device=device, requires_grad=True)
+        self.free = torch.ones((n, 1), device=device)
+        self.free[0] = 0.0
+        self.bound = torch.tensor([np.radians(cfg.refine_rot_deg)] * 3 + [cfg.refine_trans] * 3, device=device,
+                                  dtype=torch.float32)
+
+    def rt(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rotations (n, 3, 3) and translations (n, 3)."""
+        v = torch.tanh(self.xi) * self.bound * self.free
+        w = v[:, :3]
+        zero = torch.zeros_like(w[:, 0])
+        skew = torch.stack([zero, -w[:, 2], w[:, 1], w[:, 2], zero, -w[:, 0], -w[:, 1], w[:, 0], zero], dim=1)
+        return torch.linalg.matrix_exp(skew.view(-1, 3, 3)), v[:, 3:]
+
+    def move(self, p: torch.Tensor, view: torch.Tensor, rt: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
+        """Samples p (N, S, 3) of rays from views `view` (N,), corrected."""
+        R, t = rt[0][view], rt[1][view]
+        return torch.einsum("nij,nsj->nsi", R, p) + t[:, None]
 
 
 def _box_interval(o: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -93,9 +122,9 @@ def _incidence_cos(view: View, floor: float = 0.2) -> np.ndarray:
 
 def _gather_rays(views: list[View], grid: Grid, cfg: SDFConfig, device: torch.device) -> _Rays:
     lo, hi = grid.origin, grid.upper
-    surf: dict[str, list[np.ndarray]] = {k: [] for k in ("o", "d", "depth", "znear", "cos")}
-    other: dict[str, list[np.ndarray]] = {k: [] for k in ("o", "d", "depth", "znear", "zfar", "code")}
-    for view in views:
+    surf: dict[str, list[np.ndarray]] = {k: [] for k in ("o", "d", "depth", "znear", "cos", "view")}
+    other: dict[str, list[np.ndarray]] = {k: [] for k in ("o", "d", "depth", "znear", "zfar", "code", "view")}
+    for index, view in enumerate(views):
         h, w = view.depth.shape
         codes = classify_pixels(view, cfg.occ_dilate)
         if not cfg.occ_surf:
@@ -123,17 +152,18 @@ def _gather_rays(views: list[View], grid: Grid, cfg: SDFConfig, device: torch.de
         s = is_surf & (depth + cfg.truncation > t0) & (depth - cfg.truncation < t1)
         r = ~is_surf & (t1 > t0)
         cos = cos_map[v, u]
-        for key, val in (("o", o[s]), ("d", d[s]), ("depth", depth[s]), ("znear", t0[s]), ("cos", cos[s])):
+        for key, val in (("o", o[s]), ("d", d[s]), ("depth", depth[s]), ("znear", t0[s]), ("cos", cos[s]),
+                         ("view", np.full(int(s.sum()), index))):
             surf[key].append(val)
-        for key, val in (("o", o[r]), ("d", d[r]), ("depth", depth[r]), ("znear", t0[r]), ("zfar", t1[r])):
+        for key, val in (("o", o[r]), ("d", d[r]), ("depth", depth[r]), ("znear", t0[r]), ("zfar", t1[r]),
+                         ("code", code[r]), ("view", np.full(int(r.sum()), index))):
             other[key].append(val)
-        other["code"].append(code[r])
 
     def cat(parts: dict[str, list[np.ndarray]]) -> dict[str, torch.Tensor]:
         out = {}
         for key, val in parts.items():
             arr = np.concatenate(val) if val else np.zeros((0, 3) if key in ("o", "d") else (0,))
-            dtype = torch.long if key == "code" else torch.float32
+            dtype = torch.long if key in ("code", "view") else torch.float32
             out[key] = torch.as_tensor(np.ascontiguousarray(arr), device=device, dtype=dtype)
         return out
 
@@ -184,6 +214,7 @@ class InstrumentSDF:
         self.fitted = False
         self.converged = False
         self.last_losses: dict[str, float] = {}
+        self.refined_poses: dict[str, np.ndarray] = {}  # view id -> jointly refined pose (cfg.refine_poses)
         self._host: np.ndarray | None = None
 
     # -- fitting -----------------------------------------------------------------------------------------------
@@ -225,9 +256,17 @@ class InstrumentSDF:
         val = F.grid_sample(vol, g.view(1, 1, 1, -1, 3), mode="bilinear", padding_mode="border", align_corners=True)
         return val.view(-1), inside
 
-    def _losses(self, param: torch.Tensor, rays: _Rays, gen: torch.Generator) -> dict[str, torch.Tensor]:
+    def _losses(self, param: torch.Tensor, rays: _Rays, gen: torch.Generator,
+                corr: _PoseCorrections | None = None) -> dict[str, torch.Tensor]:
         c = self.cfg
         dev = param.device
+        rt = corr.rt() if corr is not None else None
+
+        def place(o: torch.Tensor, d: torch.Tensor, z: torch.Tensor, view: torch.Tensor) -> torch.Tensor:
+            """Sample points (N * S, 3) at ray parameters z (N, S), moved by the views' corrections."""
+            p = o[:, None] + z[..., None] * d[:, None]
+            return (p if corr is None else corr.move(p, view, rt)).reshape(-1, 3)
+
         vol = param.permute(2, 1, 0)[None, None]  # (1, 1, nz, ny, nx): grid_sample reads (x, y, z)
         tr = c.truncation
         S = c.samples_per_ray
@@ -238,11 +277,12 @@ class InstrumentSDF:
         if sr["depth"].numel():
             idx = torch.randint(sr["depth"].numel(), (c.batch_rays,), generator=gen, device=dev)
             o, d, dep, zn, cs = sr["o"][idx], sr["d"][idx], sr["depth"][idx], sr["znear"][idx], sr["cos"][idx]
+            vi = sr["view"][idx]
             k = torch.arange(S, device=dev, dtype=torch.float32)
             jit = torch.rand((idx.numel(), S), generator=gen, device=dev)
             behind = min(c.surf_behind, tr)
             zb = dep[:, None] - tr + (tr + behind) * (k + jit) / S
-            val, inside = self._sample(vol, (o[:, None] + zb[..., None] * d[:, None]).reshape(-1, 3))
+            val, inside = self._sample(vol, place(o, d, zb, vi))
             res = val + (zb.reshape(-1) - dep.repeat_interleave(S)) * cs.repeat_interleave(S) / tr
             m = inside & (zb.reshape(-1) > zn.repeat_interleave(S))
             surf_res = res[m]
@@ -251,7 +291,7 @@ class InstrumentSDF:
             span = (dep - tr - zn).clamp(min=0.0)
             jit = torch.rand((idx.numel(), nf), generator=gen, device=dev)
             zf = zn[:, None] + span[:, None] * (torch.arange(nf, device=dev) + jit) / nf
-            fval, finside = self._sample(vol, (o[:, None] + zf[..., None] * d[:, None]).reshape(-1, 3))
+            fval, finside = self._sample(vol, place(o, d, zf, vi))
             fm = finside & (span > 0).repeat_interleave(nf)
             # In front of an instrument surface the distance to it is at least the normal-projected depth gap.
             ftarget = ((dep[:, None] - zf) * cs[:, None] / tr).clamp(max=1.0).reshape(-1)
@@ -266,10 +306,10 @@ class InstrumentSDF:
         if orr["depth"].numel():
             idx = torch.randint(orr["depth"].numel(), (c.batch_rays,), generator=gen, device=dev)
             o, d, dep = orr["o"][idx], orr["d"][idx], orr["depth"][idx]
-            zn, zf, code = orr["znear"][idx], orr["zfar"][idx], orr["code"][idx]
+            zn, zf, code, vi = orr["znear"][idx], orr["zfar"][idx], orr["code"][idx], orr["view"][idx]
             jit = torch.rand((idx.numel(), S), generator=gen, device=dev)
             z = zn[:, None] + (zf - zn)[:, None] * (torch.arange(S, device=dev) + jit) / S
-            val, inside = self._sample(vol, (o[:, None] + z[..., None] * d[:, None]).reshape(-1, 3))
+            val, inside = self._sample(vol, place(o, d, z, vi))
             z = z.reshape(-1)
             dep = dep.repeat_interleave(S)
             code = code.repeat_interleave(S)
@@ -319,7 +359,9 @@ class InstrumentSDF:
         """Adam on the grid values with L = alpha L_occ (eq. 2) + beta L_surf (eq. 3) + w_free L_free + w_eik L_eik.
 
         Starts from the current field (call `init_tsdf` first for a fresh fit). Returns the loss history (every
-        step, dimensionless: residuals in units of the truncation), the final losses, `surf_rms_m` and `seconds`.
+        step, dimensionless: residuals in units of the truncation), the final losses, `surf_rms_m` and `seconds`;
+        with ``cfg.refine_poses`` also `poses`, the views' jointly refined poses (object-to-camera; the first view's
+        unchanged), which `refined_poses` keeps by view id.
         """
         t0 = time.perf_counter()
         n_iter = self.cfg.iterations if iterations is None else int(iterations)
@@ -328,19 +370,28 @@ class InstrumentSDF:
         gen.manual_seed(seed)
         param = self.psi.detach().clone().requires_grad_(True)
         opt = torch.optim.Adam([param], lr=self.cfg.lr)
+        corr = _PoseCorrections(len(views), self.cfg, self.device) if self.cfg.refine_poses and views else None
+        pose_opt = torch.optim.Adam([corr.xi], lr=self.cfg.refine_lr) if corr is not None else None
         history: dict[str, list[float]] = {k: [] for k in ("total", "surf", "occ", "free", "eik")}
         for _ in range(n_iter):
             if stop is not None and stop():
                 break
             opt.zero_grad(set_to_none=True)
-            losses = self._losses(param, rays, gen)
+            if pose_opt is not None:
+                pose_opt.zero_grad(set_to_none=True)
+            losses = self._losses(param, rays, gen, corr)
             losses["total"].backward()
             opt.step()
+            if pose_opt is not None:
+                pose_opt.step()
             for k in history:
                 history[k].append(float(losses[k].detach()))
         self.psi = param.detach()
         self._host = None
         self.fitted = True
+        poses = self._refined(views, corr) if corr is not None else None
+        if poses is not None:
+            self.refined_poses = {v.id: T for v, T in zip(views, poses, strict=True)}
         tail = max(1, n_iter // 10)
         final = {k: float(np.mean(v[-tail:])) if v else float("nan") for k, v in history.items()}
         surf_rms = float(np.sqrt(final["surf"])) * self.cfg.truncation if n_iter else float("nan")
@@ -352,7 +403,22 @@ class InstrumentSDF:
             "surf_rms_m": surf_rms,
             "seconds": time.perf_counter() - t0,
             "rays": (int(rays.surf["depth"].numel()), int(rays.other["depth"].numel())),
+            **({"poses": poses} if poses is not None else {}),
         }
+
+    def _refined(self, views: list[View], corr: _PoseCorrections) -> list[np.ndarray]:
+        """Object-to-camera poses xi_i T D_i^-1 T^-1 of the views after the fit (D_i acts in the grid frame, T the
+        object-from-grid rotation)."""
+        with torch.no_grad():
+            R, t = (x.double().cpu().numpy() for x in corr.rt())
+        T = np.eye(4)
+        T[:3, :3] = self.rotation.T
+        out = []
+        for view, Ri, ti in zip(views, R, t, strict=True):
+            D = np.eye(4)
+            D[:3, :3], D[:3, 3] = Ri, ti
+            out.append(view.pose @ T @ inv_T(D) @ inv_T(T))
+        return out
 
     # -- queries -----------------------------------------------------------------------------------------------
     def __call__(self, points_obj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -482,6 +548,7 @@ class InstrumentSDF:
         other.psi = self.psi.detach().clone()
         other.weight = self.weight.detach().clone()
         other.last_losses = dict(self.last_losses)
+        other.refined_poses = dict(self.refined_poses)
         other._host = None
         return other
 

@@ -190,6 +190,7 @@ class SurgTracker:
         psi = psi.copy()
         psi.refit(self.views())
         self._field = psi
+        self._refine_keyframes(psi)
         mesh = keep_near(psi.mesh(), self.model_points, 2 * self.cfg.sdf.voxel_size)
         return mesh if len(mesh.faces) else None
 
@@ -427,17 +428,27 @@ class SurgTracker:
         self._model_tree = cKDTree(self.model_points)
 
     def views(self, n: int | None = None) -> list[View]:
-        """The keyframes as SDF views; with ``n``, at most n of them spread evenly over the pool."""
+        """The keyframes as SDF views at their tracked poses (the bound of a joint refinement holds against these);
+        with ``n``, at most n of them spread evenly over the pool, the first keyframe always among them."""
         kfs = self.pool.keyframes
         if n is not None and len(kfs) > n:
             kfs = [kfs[i] for i in np.linspace(0, len(kfs) - 1, n).round().astype(int)]
-        return [View(k.depth, k.mask, k.K, k.pose) for k in kfs]
+        return [View(k.depth, k.mask, k.K, k.tracked_pose, k.frame_id) for k in kfs]
 
     def _update_sdf(self) -> None:
-        """Swap in the newest converged field; never waits for a fit in progress."""
+        """Swap in the newest converged field and the keyframe poses refined with it; never waits for a fit."""
         psi = self.fitter.latest() if self.fitter is not None else self._field
         if psi is not None and psi.converged and len(self.pool) >= self.cfg.sdf.min_keyframes:
+            if psi is not self.sdf:
+                self._refine_keyframes(psi)
             self.sdf = psi
+
+    def _refine_keyframes(self, psi: InstrumentSDF) -> None:
+        """Keyframe poses from a field fitted jointly with them (``sdf.refine_poses``); the first stays fixed."""
+        for kf in self.pool.keyframes[1:]:
+            pose = psi.refined_poses.get(kf.frame_id)
+            if pose is not None:
+                kf.pose = pose
 
     def _predicted_mask(self, frame: Frame) -> np.ndarray:
         """No mask given: render the keyframes' points at the last pose and keep depth-consistent pixels."""

@@ -28,12 +28,13 @@ SURF, SEEN, HOLE, EMPTY = 0, 1, 2, 3
 @dataclass
 class View:
     """One posed keyframe: depth (H, W) float32 metres with 0 invalid, instrument mask (H, W) bool, intrinsics 3x3,
-    pose 4x4 object-to-camera (x_cam = pose @ x_obj)."""
+    pose 4x4 object-to-camera (x_cam = pose @ x_obj), and an id (the keyframe's frame id) for refined poses."""
 
     depth: np.ndarray
     mask: np.ndarray
     K: np.ndarray
     pose: np.ndarray
+    id: str = ""
 
 
 def pick_device(device: str | torch.device | None = None) -> torch.device:
