@@ -14,13 +14,13 @@ import argparse
 import os
 import time
 
-import numpy as np
 import torch
 
 from surgtrack.config import TrackerConfig
-from surgtrack.geometry import backproject, inv_T
+from surgtrack.geometry import inv_T
 from surgtrack.io import open_sequence
 from surgtrack.metrics import chamfer_cm
+from surgtrack.preprocess import preprocess
 from surgtrack.registration import InstrumentSDF, keep_near
 from surgtrack.tracker import SurgTracker, field_box
 
@@ -42,9 +42,8 @@ def main() -> None:
         tracker.track(seq[i], seq[i].mask)
     t_track = time.perf_counter() - t
     views = tracker.views()
-    points, _ = backproject(first.depth, first.K, first.mask)
-    R, extent = field_box(points)
-    sdf = InstrumentSDF(cfg.sdf, np.zeros(3), extent, rotation=R)
+    centre, R, extent = field_box(preprocess(first, first.mask, cfg.preprocess).points()[0])
+    sdf = InstrumentSDF(cfg.sdf, centre - pose0[:3, 3], extent, rotation=R)
     t = time.perf_counter()
     sdf.init_tsdf(views)
     t_init = time.perf_counter() - t

@@ -90,16 +90,17 @@ def object_origin(points: np.ndarray) -> np.ndarray:
     return points[keep].mean(axis=0)
 
 
-def field_box(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Orientation R (rows: the principal axes of the first frame's masked points) and size (m, per axis) of the
-    SDF's box around them: what they show with room for parts seen later. Along the principal axes an inclined,
-    elongated instrument fills its box; an axis-aligned box around it is mostly empty voxels."""
-    centred = points - points.mean(axis=0)
-    _, vecs = np.linalg.eigh(centred.T @ centred)
+def field_box(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Centre (the points' mean), orientation R (rows: their principal axes) and size (m, per axis) of the SDF's
+    box around the first frame's preprocessed instrument points (flying pixels already dropped): what they show
+    with room for parts seen later. Along the principal axes an inclined, elongated instrument fills its box; an
+    axis-aligned box around it is mostly empty voxels."""
+    centre = points.mean(axis=0)
+    _, vecs = np.linalg.eigh((points - centre).T @ (points - centre))
     R = vecs[:, ::-1].T  # rows by decreasing variance
     if np.linalg.det(R) < 0:
         R[2] *= -1
-    return R, np.clip(1.5 * np.ptp(centred @ R.T, axis=0) + 0.04, 0.08, 0.6)
+    return centre, R, np.clip(1.5 * np.ptp((points - centre) @ R.T, axis=0) + 0.04, 0.08, 0.6)
 
 
 class SurgTracker:
@@ -144,8 +145,8 @@ class SurgTracker:
         pts, _ = backproject(frame.depth, frame.K, mask)  # the whole masked cloud, not the filtered subset
         pose = make_T(np.eye(3), object_origin(pts))
         if self.cfg.sdf.enabled:
-            R, extent = field_box(pts)
-            self._field = InstrumentSDF(self.cfg.sdf, np.zeros(3), extent, rotation=R)
+            centre, R, extent = field_box(obs.points()[0])
+            self._field = InstrumentSDF(self.cfg.sdf, centre - pose[:3, 3], extent, rotation=R)
             self.fitter = (BackgroundFitter(self._field, self.cfg.sdf.refit_iterations, num_threads=1)
                            if self.cfg.sdf.background else None)
         node = self._node(obs, self.extractor(obs), pose)
