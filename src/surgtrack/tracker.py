@@ -92,15 +92,18 @@ def object_origin(points: np.ndarray) -> np.ndarray:
 
 def field_box(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Centre (the points' mean), orientation R (rows: their principal axes) and size (m, per axis) of the SDF's
-    box around the first frame's preprocessed instrument points (flying pixels already dropped): what they show
-    with room for parts seen later. Along the principal axes an inclined, elongated instrument fills its box; an
-    axis-aligned box around it is mostly empty voxels."""
+    box around the first frame's preprocessed instrument points (flying pixels already dropped): 1.5 times what
+    they show plus 4 cm, for parts seen later. The first frame shows one side only, so across the longest axis the
+    box is at least as deep as the instrument is wide (its second extent). Along the principal axes an inclined,
+    elongated instrument fills its box; an axis-aligned box around it is mostly empty voxels."""
     centre = points.mean(axis=0)
     _, vecs = np.linalg.eigh((points - centre).T @ (points - centre))
     R = vecs[:, ::-1].T  # rows by decreasing variance
     if np.linalg.det(R) < 0:
         R[2] *= -1
-    return centre, R, np.clip(1.5 * np.ptp((points - centre) @ R.T, axis=0) + 0.04, 0.08, 0.6)
+    size = np.ptp((points - centre) @ R.T, axis=0)
+    size[2] = size[1]
+    return centre, R, np.clip(1.5 * size + 0.04, 0.08, 0.6)
 
 
 class SurgTracker:
