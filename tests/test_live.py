@@ -130,9 +130,13 @@ def test_recording_plays_back_frame_by_frame(recording: Path, synth_seq: Path):
 
 
 def test_forced_alignment_keeps_the_geometry(recording: Path, synth_seq: Path):
-    ref = open_sequence(synth_seq)[0]
+    seq = open_sequence(synth_seq)
     with RealSenseSource(file=recording, align=True) as source:
         frame = next(iter(source))
+    # Compare with the recorded frame this one is, by its colour: on a loaded machine the comparison with the
+    # first recorded frame failed once (95th percentile 6 mm, as far as a neighbouring frame's depth).
+    ref = next((f for f in seq if np.array_equal(f.rgb, frame.rgb)), None)
+    assert ref is not None, "the aligned frame's colour is none of the recorded frames'"
     both = (frame.depth > 0) & (ref.depth > 0)
     assert both.sum() >= 0.9 * (ref.depth > 0).sum()
     # rs.align re-projects pixel footprints and may move a value by a pixel: compare with the nearest neighbour.
