@@ -23,8 +23,8 @@ from surgtrack.geometry import inv_T
 from surgtrack.io import open_sequence
 from surgtrack.metrics import chamfer_cm
 from surgtrack.preprocess import preprocess
-from surgtrack.registration import InstrumentSDF, keep_near
-from surgtrack.tracker import SurgTracker, field_box
+from surgtrack.registration import keep_near
+from surgtrack.tracker import SurgTracker, new_field
 
 
 def main() -> None:
@@ -46,8 +46,7 @@ def main() -> None:
         tracker.track(seq[i], seq[i].mask)
     t_track = time.perf_counter() - t
     views = tracker.views()
-    centre, R, extent = field_box(preprocess(first, first.mask, cfg.preprocess).points()[0])
-    sdf = InstrumentSDF(cfg.sdf, centre - pose0[:3, 3], extent, rotation=R)
+    sdf = new_field(cfg.sdf, preprocess(first, first.mask, cfg.preprocess), pose0[:3, 3])
     t = time.perf_counter()
     sdf.init_tsdf(views)
     t_init = time.perf_counter() - t

@@ -223,6 +223,12 @@ def _bad_rotation(path: Path, dst: Path) -> Path:
     return rewrite(path, dst, meta=meta)
 
 
+def _no_rotation(path: Path, dst: Path) -> Path:
+    meta = read_meta(path)
+    del meta["sdf"]["rotation"]  # version 2 needs it
+    return rewrite(path, dst, meta=meta)
+
+
 def _wrong_grid(path: Path, dst: Path) -> Path:
     return rewrite(path, dst, members={"keyframes/000/grid_xyz.npy": npy(np.zeros((5, 5, 3), np.float32))})
 
@@ -245,6 +251,7 @@ def _flipped_byte(path: Path, dst: Path) -> Path:
     (_missing_array, "corrupt surgtrack model: keyframes/001/features_desc.npy is missing"),
     (_wrong_shape, "corrupt surgtrack model: sdf/psi.npy has shape 4x4x4, expected "),
     (_bad_rotation, "corrupt surgtrack model: SDF rotation is not a rotation matrix"),
+    (_no_rotation, "corrupt surgtrack model: SDF rotation is not a finite 3x3 matrix"),
     (_wrong_grid, "corrupt surgtrack model: keyframes/000/grid_xyz.npy has shape 5x5x3"),
     (_flipped_byte, "corrupt surgtrack model: cannot read sdf/psi.npy"),
 ])

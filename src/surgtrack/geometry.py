@@ -71,6 +71,12 @@ def se3_exp(xi: np.ndarray) -> np.ndarray:
     return make_T(so3_exp(xi[3:]), xi[:3])
 
 
+def is_rotation(R: np.ndarray, tol: float = 1e-6) -> bool:
+    """Whether a 3x3 matrix is a rotation (orthonormal, determinant +1)."""
+    R = np.asarray(R, dtype=np.float64)
+    return R.shape == (3, 3) and bool(np.allclose(R @ R.T, np.eye(3), atol=tol)) and np.linalg.det(R) > 0
+
+
 def rotation_angle_deg(R: np.ndarray) -> float:
     """Geodesic angle of a rotation matrix, degrees."""
     return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))

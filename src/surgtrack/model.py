@@ -51,6 +51,7 @@ import trimesh
 
 from .config import SDFConfig
 from .features import Features
+from .geometry import is_rotation
 from .io import SequenceError
 from .memory_pool import Keyframe
 from .registration import InstrumentSDF
@@ -322,15 +323,15 @@ def _build(r: _Reader, meta: dict, device: str | None) -> InstrumentModel:
             "psi": r.array("sdf/psi.npy", shape, ("float16",)).astype(np.float32) * np.float32(cfg.truncation),
             "weight": r.array("sdf/weight.npy", shape, ("float32",)),
             "origin": _vector(r, sm["origin"]),
-            "rotation": (_matrix(r, sm["rotation"], (3, 3), "SDF rotation") if "rotation" in sm else np.eye(3)),
+            "rotation": (_matrix(r, sm.get("rotation"), (3, 3), "SDF rotation") if meta["version"] >= 2
+                         else np.eye(3)),  # version 1: an axis-aligned box
             "voxel": np.float64(sm["voxel"]),
             "flags": np.array([bool(sm["fitted"]), bool(sm["converged"])]),
             "cfg": np.array(json.dumps(asdict(cfg))),
         }
         if not state["voxel"] > 0:
             raise r.fail(f"corrupt surgtrack model: SDF voxel size {sm['voxel']} is not positive")
-        R = state["rotation"]
-        if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        if not is_rotation(state["rotation"]):
             raise r.fail("corrupt surgtrack model: SDF rotation is not a rotation matrix")
         sdf = InstrumentSDF.from_state_dict(state, device=device)
     mm = meta.get("mesh") or {"vertices": 0, "faces": 0}

@@ -50,7 +50,7 @@ from scipy.spatial import cKDTree
 from skimage import measure
 
 from .config import SDFConfig
-from .geometry import depth_to_xyz, inv_T
+from .geometry import depth_to_xyz, inv_T, is_rotation, make_T
 from .tsdf import EMPTY, HOLE, SEEN, SURF, Grid, View, classify_pixels, fuse_tsdf, pick_device
 
 __all__ = ["BackgroundFitter", "InstrumentSDF", "View"]
@@ -206,7 +206,7 @@ class InstrumentSDF:
         self.cfg = cfg
         self.device = pick_device(device)
         self.rotation = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64).reshape(3, 3)
-        if not np.allclose(self.rotation @ self.rotation.T, np.eye(3), atol=1e-6) or np.linalg.det(self.rotation) < 0:
+        if not is_rotation(self.rotation):
             raise ValueError("InstrumentSDF rotation is not a rotation matrix")
         self.grid = Grid.around(self.rotation @ np.asarray(center, dtype=np.float64), extent, cfg.voxel_size)
         self.psi = torch.ones(self.grid.shape, device=self.device)  # Psi / truncation
@@ -218,12 +218,13 @@ class InstrumentSDF:
         self._host: np.ndarray | None = None
 
     # -- fitting -----------------------------------------------------------------------------------------------
+    def _object_from_grid(self) -> np.ndarray:
+        """4x4 T with x_obj = T x_grid."""
+        return make_T(self.rotation.T, np.zeros(3))
+
     def _in_grid(self, views: list[View]) -> list[View]:
-        """The views posed in the grid frame (x_cam = pose @ T x_grid, T the object-from-grid rotation)."""
-        if np.array_equal(self.rotation, np.eye(3)):
-            return views
-        T = np.eye(4)
-        T[:3, :3] = self.rotation.T
+        """The views posed in the grid frame (x_cam = pose @ T x_grid, T = `_object_from_grid`)."""
+        T = self._object_from_grid()
         return [replace(v, pose=v.pose @ T) for v in views]
 
     def init_tsdf(self, views: list[View]) -> None:
@@ -411,14 +412,8 @@ class InstrumentSDF:
         object-from-grid rotation)."""
         with torch.no_grad():
             R, t = (x.double().cpu().numpy() for x in corr.rt())
-        T = np.eye(4)
-        T[:3, :3] = self.rotation.T
-        out = []
-        for view, Ri, ti in zip(views, R, t, strict=True):
-            D = np.eye(4)
-            D[:3, :3], D[:3, 3] = Ri, ti
-            out.append(view.pose @ T @ inv_T(D) @ inv_T(T))
-        return out
+        T = self._object_from_grid()
+        return [view.pose @ T @ inv_T(make_T(Ri, ti)) @ inv_T(T) for view, Ri, ti in zip(views, R, t, strict=True)]
 
     # -- queries -----------------------------------------------------------------------------------------------
     def __call__(self, points_obj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -525,12 +520,7 @@ class InstrumentSDF:
     @classmethod
     def from_state_dict(cls, state: dict[str, np.ndarray], device: str | torch.device | None = None) -> InstrumentSDF:
         cfg = SDFConfig(**json.loads(str(np.asarray(state["cfg"]))))
-        psi = np.asarray(state["psi"])
-        origin = np.asarray(state["origin"], dtype=np.float64)
-        voxel = float(state["voxel"])
-        extent = (np.array(psi.shape) - 1) * voxel
-        rotation = np.asarray(state.get("rotation", np.eye(3)), dtype=np.float64).reshape(3, 3)
-        sdf = cls(cfg, rotation.T @ (origin + extent / 2), extent, device=device, rotation=rotation)
+        sdf = cls(cfg, np.zeros(3), float(state["voxel"]), device=device)  # lattice and rotation from the state
         sdf.load_state_dict(state)
         return sdf
 

@@ -18,7 +18,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from .config import TrackerConfig
+from .config import SDFConfig, TrackerConfig
 from .features import FeatureExtractor, Features, match
 from .geometry import (
     backproject,
@@ -106,6 +106,13 @@ def field_box(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return centre, R, np.clip(1.5 * size + 0.04, 0.08, 0.6)
 
 
+def new_field(cfg: SDFConfig, obs: Observation, origin: np.ndarray) -> InstrumentSDF:
+    """An empty Instrument SDF in the box `field_box` sets around a first frame's preprocessed points, in the object
+    frame whose origin (camera frame, axes the camera's) is ``origin``."""
+    centre, R, extent = field_box(obs.points()[0])
+    return InstrumentSDF(cfg, centre - origin, extent, rotation=R)
+
+
 class SurgTracker:
     """Model-free 6-DoF tracker of one instrument."""
 
@@ -148,8 +155,7 @@ class SurgTracker:
         pts, _ = backproject(frame.depth, frame.K, mask)  # the whole masked cloud, not the filtered subset
         pose = make_T(np.eye(3), object_origin(pts))
         if self.cfg.sdf.enabled:
-            centre, R, extent = field_box(obs.points()[0])
-            self._field = InstrumentSDF(self.cfg.sdf, centre - pose[:3, 3], extent, rotation=R)
+            self._field = new_field(self.cfg.sdf, obs, pose[:3, 3])
             self.fitter = (BackgroundFitter(self._field, self.cfg.sdf.refit_iterations, num_threads=1)
                            if self.cfg.sdf.background else None)
         node = self._node(obs, self.extractor(obs), pose)
