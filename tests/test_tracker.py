@@ -13,7 +13,7 @@ from surgtrack.geometry import backproject, depth_to_xyz
 from surgtrack.io import open_sequence, read_poses
 from surgtrack.metrics import evaluate
 from surgtrack.pipeline import track_sequence
-from surgtrack.tracker import LOST, SurgTracker, object_origin
+from surgtrack.tracker import LOST, SurgTracker, object_origin, shaft_box
 
 
 def test_object_origin_ignores_outliers():
@@ -21,6 +21,28 @@ def test_object_origin_ignores_outliers():
     shaft = np.column_stack([rng.uniform(-0.1, 0.1, 2000), 0.004 * rng.standard_normal((2000, 2))]) + [0, 0, 0.4]
     flying = rng.uniform(-1, 1, (100, 3)) + [0, 0, 1.5]
     np.testing.assert_allclose(object_origin(np.vstack([shaft, flying])), shaft.mean(axis=0), atol=0.003)
+
+
+def test_the_final_box_grows_along_the_shaft_the_keyframes_saw():
+    """The mesh's box takes in the shaft later keyframes show, not a drifted keyframe's stray points nor things
+    beside the instrument, and keeps the first frame's cross-section."""
+    from scipy.spatial.transform import Rotation
+
+    from surgtrack.config import SDFConfig
+    from surgtrack.registration import InstrumentSDF
+
+    rng = np.random.default_rng(0)
+    R = Rotation.from_euler("xyz", [20, -35, 50], degrees=True).as_matrix().T  # rows: the box's axes
+    psi = InstrumentSDF(SDFConfig(), np.zeros(3), np.array([0.12, 0.03, 0.03]), rotation=R)
+    shaft = np.column_stack([rng.uniform(-0.05, 0.25, 5000), 0.004 * rng.standard_normal((5000, 2))])
+    stray = np.column_stack([rng.uniform(0.3, 0.7, 60), np.zeros((60, 2))])  # 1 %: a drifted keyframe
+    beside = np.column_stack([rng.uniform(-0.5, -0.3, 2000), np.full(2000, 0.1), np.zeros(2000)])  # out of section
+    centre, size = shaft_box(psi, np.vstack([shaft, stray, beside]) @ R)  # box frame -> object frame
+    lo, hi = R @ centre - size / 2, R @ centre + size / 2
+    assert -0.09 < lo[0] <= psi.grid.origin[0] and 0.25 < hi[0] < 0.28
+    np.testing.assert_allclose(size[1:], (psi.grid.upper - psi.grid.origin)[1:])
+    _, size = shaft_box(psi, np.column_stack([np.linspace(-1, 1, 1000), np.zeros((1000, 2))]) @ R)
+    assert size[0] == pytest.approx(0.8)
 
 
 def test_first_pose_is_the_masked_cloud_centre_with_camera_axes(synth_seq):

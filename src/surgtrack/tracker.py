@@ -106,6 +106,24 @@ def field_box(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return centre, R, np.clip(1.5 * size + 0.04, 0.08, 0.6)
 
 
+def shaft_box(psi: InstrumentSDF, points: np.ndarray, trim: float = 3.0, pad: float = 0.02,
+              longest: float = 0.8) -> tuple[np.ndarray, np.ndarray]:
+    """Centre (object frame) and size of ``psi``'s box grown along its first (longest) axis to take in the
+    keyframes' object-frame ``points`` that lie within its cross-section: the ``trim`` and 100 - ``trim``
+    percentiles of their positions along the axis, plus ``pad``, at most ``longest`` m in all. The first frame
+    shows part of a shaft; later keyframes show more of it. The percentiles keep the points of a drifted keyframe
+    from stretching the box; the cross-section stays as the first frame set it."""
+    lo, hi = psi.grid.origin.copy(), psi.grid.upper.copy()
+    q = points @ psi.rotation.T
+    across = ((q[:, 1:] >= lo[1:]) & (q[:, 1:] <= hi[1:])).all(axis=1)
+    if across.sum() > 0:
+        a, b = np.percentile(q[across, 0], [trim, 100.0 - trim])
+        lo[0], hi[0] = min(lo[0], a - pad), max(hi[0], b + pad)
+        excess = max(hi[0] - lo[0] - longest, 0.0)
+        lo[0], hi[0] = lo[0] + excess / 2, hi[0] - excess / 2
+    return psi.rotation.T @ ((lo + hi) / 2), hi - lo
+
+
 def new_field(cfg: SDFConfig, obs: Observation, origin: np.ndarray) -> InstrumentSDF:
     """An empty Instrument SDF in the box `field_box` sets around a first frame's preprocessed points, in the object
     frame whose origin (camera frame, axes the camera's) is ``origin``."""
@@ -187,8 +205,9 @@ class SurgTracker:
         return node.pose
 
     def mesh(self) -> trimesh.Trimesh | None:
-        """The reconstructed instrument (object frame, metres): a full fit on every keyframe, warm-started from the
-        latest field, then marching cubes."""
+        """The reconstructed instrument (object frame, metres): a fresh fit (TSDF start, eq. 4) on every keyframe in
+        the field's box grown along the shaft to the keyframes' points (`shaft_box`), then marching cubes. A fresh
+        fit gave a lower Chamfer distance than refitting the tracking field (benchmarks/RESULTS.md)."""
         if not self.cfg.sdf.enabled or not self.pool.keyframes:
             return None
         psi = self._field
@@ -197,7 +216,8 @@ class SurgTracker:
             if self.fitter.error is not None:
                 raise self.fitter.error
             psi = self.fitter.latest() or psi
-        psi = psi.copy()
+        centre, extent = shaft_box(psi, self.model_points)
+        psi = InstrumentSDF(psi.cfg, centre, extent, psi.device, rotation=psi.rotation)
         psi.refit(self.views())
         self._field = psi
         self._refine_keyframes(psi)
