@@ -7,13 +7,14 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+import torch
 
 from surgtrack.config import TrackerConfig
-from surgtrack.geometry import backproject, depth_to_xyz
+from surgtrack.geometry import backproject, depth_to_xyz, make_T, transform
 from surgtrack.io import open_sequence, read_poses
 from surgtrack.metrics import evaluate
 from surgtrack.pipeline import track_sequence
-from surgtrack.tracker import LOST, SurgTracker, object_origin, shaft_box
+from surgtrack.tracker import LOST, SurgTracker, object_origin, shaft_range
 
 
 def test_object_origin_ignores_outliers():
@@ -25,7 +26,7 @@ def test_object_origin_ignores_outliers():
 
 def test_the_final_box_grows_along_the_shaft_the_keyframes_saw():
     """The mesh's box takes in the shaft later keyframes show, not a drifted keyframe's stray points nor things
-    beside the instrument, and keeps the first frame's cross-section."""
+    beside the instrument; the field's values carry over and the cross-section stays the first frame's."""
     from scipy.spatial.transform import Rotation
 
     from surgtrack.config import SDFConfig
@@ -34,15 +35,25 @@ def test_the_final_box_grows_along_the_shaft_the_keyframes_saw():
     rng = np.random.default_rng(0)
     R = Rotation.from_euler("xyz", [20, -35, 50], degrees=True).as_matrix().T  # rows: the box's axes
     psi = InstrumentSDF(SDFConfig(), np.zeros(3), np.array([0.12, 0.03, 0.03]), rotation=R)
+    psi.psi = torch.rand(psi.grid.shape, generator=torch.Generator().manual_seed(0))
+    psi.weight = torch.ones(psi.grid.shape)
     shaft = np.column_stack([rng.uniform(-0.05, 0.25, 5000), 0.004 * rng.standard_normal((5000, 2))])
     stray = np.column_stack([rng.uniform(0.3, 0.7, 60), np.zeros((60, 2))])  # 1 %: a drifted keyframe
     beside = np.column_stack([rng.uniform(-0.5, -0.3, 2000), np.full(2000, 0.1), np.zeros(2000)])  # out of section
-    centre, size = shaft_box(psi, np.vstack([shaft, stray, beside]) @ R)  # box frame -> object frame
-    lo, hi = R @ centre - size / 2, R @ centre + size / 2
-    assert -0.09 < lo[0] <= psi.grid.origin[0] and 0.25 < hi[0] < 0.28
-    np.testing.assert_allclose(size[1:], (psi.grid.upper - psi.grid.origin)[1:])
-    _, size = shaft_box(psi, np.column_stack([np.linspace(-1, 1, 1000), np.zeros((1000, 2))]) @ R)
-    assert size[0] == pytest.approx(0.8)
+    lo, hi = shaft_range(psi, np.vstack([shaft, stray, beside]) @ R)  # box frame -> object frame
+    assert -0.07 < lo <= psi.grid.origin[0] and 0.25 < hi < 0.28
+    longer = psi.lengthened(lo, hi)
+    v = longer.grid.voxel
+    assert 0 <= lo - longer.grid.origin[0] < v and 0 <= longer.grid.upper[0] - hi < v
+    k, n = round((psi.grid.origin[0] - longer.grid.origin[0]) / v), psi.grid.shape[0]
+    np.testing.assert_allclose(longer.grid.origin, psi.grid.origin - [k * v, 0, 0])
+    assert longer.grid.shape[1:] == psi.grid.shape[1:]
+    torch.testing.assert_close(longer.psi[k:k + n], psi.psi)
+    assert (longer.weight[k + n:] == 0).all() and (longer.psi[k + n:] == 1).all() and (longer.weight[:k] == 0).all()
+    p = transform(make_T(R.T, np.zeros(3)), np.array([[0.01, 0.005, -0.004]]))  # a point in both boxes
+    np.testing.assert_allclose(longer.query(p)[0], psi.query(p)[0], atol=1e-6)
+    lo, hi = shaft_range(psi, np.column_stack([np.linspace(-1, 1, 1000), np.zeros((1000, 2))]) @ R)
+    assert hi - lo == pytest.approx(0.8)
 
 
 def test_first_pose_is_the_masked_cloud_centre_with_camera_axes(synth_seq):

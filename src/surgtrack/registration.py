@@ -532,6 +532,19 @@ class InstrumentSDF:
         with np.load(path) as z:
             return cls.from_state_dict({k: z[k] for k in z.files}, device=device)
 
+    def lengthened(self, lo: float, hi: float) -> InstrumentSDF:
+        """A copy whose box also spans [lo, hi] (m, grid frame) along its first axis, in whole voxels: the field's
+        values are kept and the added voxels start unobserved (the next `refit` fills them by TSDF fusion)."""
+        v, n = self.grid.voxel, self.grid.shape[0]
+        below = max(int(np.ceil((self.grid.origin[0] - lo) / v - 1e-6)), 0)
+        above = max(int(np.ceil((hi - self.grid.upper[0]) / v - 1e-6)), 0)
+        other = self.copy()
+        other.grid = replace(self.grid, origin=self.grid.origin - [below * v, 0.0, 0.0],
+                             shape=(n + below + above, *self.grid.shape[1:]))
+        other.psi = F.pad(self.psi, (0, 0, 0, 0, below, above), value=1.0)
+        other.weight = F.pad(self.weight, (0, 0, 0, 0, below, above), value=0.0)
+        return other
+
     def copy(self) -> InstrumentSDF:
         """Independent copy (tensors cloned)."""
         other = copy.copy(self)

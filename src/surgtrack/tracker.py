@@ -106,22 +106,21 @@ def field_box(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return centre, R, np.clip(1.5 * size + 0.04, 0.08, 0.6)
 
 
-def shaft_box(psi: InstrumentSDF, points: np.ndarray, trim: float = 3.0, pad: float = 0.02,
-              longest: float = 0.8) -> tuple[np.ndarray, np.ndarray]:
-    """Centre (object frame) and size of ``psi``'s box grown along its first (longest) axis to take in the
-    keyframes' object-frame ``points`` that lie within its cross-section: the ``trim`` and 100 - ``trim``
-    percentiles of their positions along the axis, plus ``pad``, at most ``longest`` m in all. The first frame
-    shows part of a shaft; later keyframes show more of it. The percentiles keep the points of a drifted keyframe
-    from stretching the box; the cross-section stays as the first frame set it."""
-    lo, hi = psi.grid.origin.copy(), psi.grid.upper.copy()
+def shaft_range(psi: InstrumentSDF, points: np.ndarray, trim: float = 3.0, pad: float = 0.02,
+                longest: float = 0.8) -> tuple[float, float]:
+    """The range (m) along ``psi``'s first (longest) box axis, grid frame, that the final fit's box spans: its
+    own, grown to the ``trim`` and 100 - ``trim`` percentiles, plus ``pad``, of the keyframes' object-frame
+    ``points`` that lie within its cross-section; at most ``longest`` m. The first frame shows part of a shaft,
+    later keyframes more of it; the percentiles keep a drifted keyframe's points from stretching the box."""
+    lo, hi = float(psi.grid.origin[0]), float(psi.grid.upper[0])
     q = points @ psi.rotation.T
-    across = ((q[:, 1:] >= lo[1:]) & (q[:, 1:] <= hi[1:])).all(axis=1)
-    if across.sum() > 0:
+    across = ((q[:, 1:] >= psi.grid.origin[1:]) & (q[:, 1:] <= psi.grid.upper[1:])).all(axis=1)
+    if across.any():
         a, b = np.percentile(q[across, 0], [trim, 100.0 - trim])
-        lo[0], hi[0] = min(lo[0], a - pad), max(hi[0], b + pad)
-        excess = max(hi[0] - lo[0] - longest, 0.0)
-        lo[0], hi[0] = lo[0] + excess / 2, hi[0] - excess / 2
-    return psi.rotation.T @ ((lo + hi) / 2), hi - lo
+        lo, hi = min(lo, a - pad), max(hi, b + pad)
+        excess = max(hi - lo - longest, 0.0)
+        lo, hi = lo + excess / 2, hi - excess / 2
+    return lo, hi
 
 
 def new_field(cfg: SDFConfig, obs: Observation, origin: np.ndarray) -> InstrumentSDF:
@@ -205,9 +204,8 @@ class SurgTracker:
         return node.pose
 
     def mesh(self) -> trimesh.Trimesh | None:
-        """The reconstructed instrument (object frame, metres): a fresh fit (TSDF start, eq. 4) on every keyframe in
-        the field's box grown along the shaft to the keyframes' points (`shaft_box`), then marching cubes. A fresh
-        fit gave a lower Chamfer distance than refitting the tracking field (benchmarks/RESULTS.md)."""
+        """The reconstructed instrument (object frame, metres): the latest field, its box lengthened along the shaft
+        to the keyframes' points (`shaft_range`), refitted on every keyframe, then marching cubes."""
         if not self.cfg.sdf.enabled or not self.pool.keyframes:
             return None
         psi = self._field
@@ -216,8 +214,7 @@ class SurgTracker:
             if self.fitter.error is not None:
                 raise self.fitter.error
             psi = self.fitter.latest() or psi
-        centre, extent = shaft_box(psi, self.model_points)
-        psi = InstrumentSDF(psi.cfg, centre, extent, psi.device, rotation=psi.rotation)
+        psi = psi.lengthened(*shaft_range(psi, self.model_points))
         psi.refit(self.views())
         self._field = psi
         self._refine_keyframes(psi)
