@@ -16,6 +16,7 @@ class PreprocessConfig:
     predicted_mask_margin: int = 4  # pixels a predicted mask (no mask given) extends beyond the rendered model
     predicted_mask_tol: float = 0.01  # m a predicted mask's depth may lie outside the model's depth nearby
     predicted_mask_colour: float = 0.25  # min colour posterior of pixels beyond the rendered model (0: off)
+    predicted_mask_remask: bool = True  # mask a frame again at its tracked pose and optimise the graph once more
     search_mask_colour: float = 0.6  # lost without a given mask: pixels whose colour is instrument with this posterior
     normal_step: int = 1  # normals from neighbours this many pixels away (larger: smoother, fewer thin-part pixels)
     max_grazing_deg: float = 80.0  # drop points whose normal is further than this from the viewing ray

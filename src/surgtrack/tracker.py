@@ -225,8 +225,9 @@ class SurgTracker:
         """One tracking step (Stage 2): preprocess, coarse pose (eq. 5), posture graph (eqs. 7-11), memory (eq. 6)."""
         clock = _Clock()
         self._update_sdf()
-        if mask is None:
-            mask = self._predicted_mask(frame)
+        predicted = mask is None
+        if predicted:
+            mask = self._predicted_mask(frame, self.recent[-1].pose)
         obs = preprocess(frame, mask, self.cfg.preprocess)
         clock.lap("preprocess")
         if obs.n_valid < self.cfg.failure.min_pixels:
@@ -243,6 +244,10 @@ class SurgTracker:
         if self.cfg.graph.enabled:
             pose = node.pose = orthonormalize(self._optimise(node, edges))
             clock.lap("graph")
+            if predicted and not self.lost and self.cfg.preprocess.predicted_mask_remask:
+                obs, node = self._remasked(obs, node, edges)
+                pose = node.pose
+                clock.lap("remask")
         confidence = self._confidence(node)
         if confidence < self.cfg.failure.min_confidence:
             return self._lose(clock, confidence)
@@ -477,8 +482,20 @@ class SurgTracker:
             if pose is not None:
                 kf.pose = pose
 
-    def _predicted_mask(self, frame: Frame) -> np.ndarray:
-        """No mask given: render the keyframes' points at the last pose and keep depth-consistent pixels."""
+    def _remasked(self, obs: Observation, node: _Node, edges: list) -> tuple[Observation, _Node]:
+        """A frame that came without a mask, masked again at its tracked pose and its graph optimised once more
+        (eqs. 7-11, the same feature edges): the mask predicted before tracking carries the prediction's error,
+        and parts of the instrument it left out pull the pose towards the prediction."""
+        again = preprocess(obs.frame, self._predicted_mask(obs.frame, node.pose), self.cfg.preprocess)
+        if again.n_valid < self.cfg.failure.min_pixels:
+            return obs, node
+        second = self._node(again, self.extractor(again), node.pose)
+        second.pose = orthonormalize(self._optimise(second, edges))
+        return again, second
+
+    def _predicted_mask(self, frame: Frame, pose: np.ndarray) -> np.ndarray:
+        """No mask given: render the keyframes' points at ``pose`` and keep depth-consistent pixels; while lost,
+        the colour search around the last tracked position."""
         if self.model_points is None:
             return np.zeros(frame.depth.shape, bool)
         pre = self.cfg.preprocess
@@ -488,7 +505,7 @@ class SurgTracker:
             return search_mask(colour.posterior(frame.rgb), frame.depth, frame.K, self.recent[-1].pose[:3, 3],
                                self._reach(frame.index), pre.search_mask_colour,
                                (self.cfg.failure.min_pixels, 3 * seen))
-        return predict_mask(self.model_points, self.recent[-1].pose, frame.K, frame.depth, pre.predicted_mask_margin,
+        return predict_mask(self.model_points, pose, frame.K, frame.depth, pre.predicted_mask_margin,
                             pre.predicted_mask_tol, frame.rgb, colour, pre.predicted_mask_colour)
 
     def _lose(self, clock: _Clock, confidence: float = 0.0) -> TrackResult:
