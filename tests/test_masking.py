@@ -78,3 +78,28 @@ def test_search_mask_finds_the_nearest_instrument_coloured_region_of_plausible_s
     found = search_mask(colours.posterior(rgb2), depth2, K, last, 0.5, 0.6, (40, 3 * int(mask.sum())))
     assert (found == moved).all()  # the tray is too big to be the instrument
     assert not search_mask(colours.posterior(rgb2), depth2, K, last, 0.05, 0.6, (40, 6000)).any()  # out of reach
+
+
+def test_search_mask_cuts_a_merged_region_where_the_depth_jumps():
+    """The instrument's colour region runs into a nearer hand of a similar colour: too big as a whole, the region
+    is cut at the depth step and at missing depth between them, and the instrument's part is found."""
+    rgb, depth, mask = scene()
+    colours = ColourModel()
+    colours.learn(rgb, mask)
+    rgb2 = np.empty_like(rgb)
+    rgb2[:] = GREEN
+    depth2 = np.full_like(depth, 0.5)
+    bar = np.zeros_like(mask)
+    bar[50:70, 10:115] = True
+    hand = np.zeros_like(mask)
+    hand[:, 115:] = True  # touches the bar's end, 8 cm nearer
+    rgb2[bar | hand] = GREY
+    depth2[bar] = 0.32
+    depth2[hand] = 0.24
+    depth2[60, 60:64] = 0.0  # dropouts on the bar stay inside it
+    depth2[30:40, 110:120] = 0.0  # and at the hand's edge
+    last = np.array([0.0, 0.0, 0.3])
+    pixels = (40, 3 * int(mask.sum()))
+    found = search_mask(colours.posterior(rgb2), depth2, K, last, 0.5, 0.6, pixels)
+    assert found.sum() > 0.9 * (bar & (depth2 > 0)).sum() and not (found & hand).any()
+    assert not search_mask(colours.posterior(rgb2), depth2, K, last, 0.5, 0.6, pixels, depth_step=0.1).any()

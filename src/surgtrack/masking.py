@@ -103,14 +103,41 @@ class ColourModel:
         return f / (f + b)
 
 
+def _depth_edges(depth: np.ndarray, step: float) -> np.ndarray:
+    """Pixels with valid depth lying more than ``step`` (m) behind a 4-neighbour with valid depth: the far side of
+    each depth jump, so a nearer object keeps its outline and one behind it is cut off from it."""
+    edge = np.zeros(depth.shape, bool)
+    pair = (depth[1:] > 0) & (depth[:-1] > 0)  # vertical neighbours
+    edge[1:] |= pair & (depth[1:] - depth[:-1] > step)
+    edge[:-1] |= pair & (depth[:-1] - depth[1:] > step)
+    pair = (depth[:, 1:] > 0) & (depth[:, :-1] > 0)  # horizontal neighbours
+    edge[:, 1:] |= pair & (depth[:, 1:] - depth[:, :-1] > step)
+    edge[:, :-1] |= pair & (depth[:, :-1] - depth[:, 1:] > step)
+    return edge
+
+
 def search_mask(posterior: np.ndarray, depth: np.ndarray, K: np.ndarray, centre: np.ndarray, radius: float,
-                min_posterior: float, pixels: tuple[int, int]) -> np.ndarray:
+                min_posterior: float, pixels: tuple[int, int], depth_step: float = 0.01) -> np.ndarray:
     """Where the instrument may be when its pose is lost: the connected region of pixels whose colour is
     instrument with at least ``min_posterior``, of a plausible pixel count (``pixels``: min, max, counting pixels
     with valid depth), whose 3D centroid lies within ``radius`` of ``centre`` (camera frame: where the instrument
     was last seen) and nearest to it; its pixels with valid depth, or an empty mask when there is none.
-    Connectivity is by colour alone, so depth dropouts along a thin shaft do not break it apart."""
-    n, labels = cv2.connectedComponents((posterior >= min_posterior).astype(np.uint8), connectivity=8)
+    Connectivity is by colour alone, so depth dropouts along a thin shaft do not break it apart; when no region
+    qualifies (the instrument's region merged with a hand or drape of a similar colour), the regions are cut
+    again, 4-connected, where the depth is missing or jumps by more than ``depth_step`` (the far side of the
+    jump is cut off, so a diagonal contact does not join them)."""
+    colour = posterior >= min_posterior
+    found = _nearest_region(colour, depth, K, centre, radius, pixels)
+    if not found.any():
+        cut = colour & (depth > 0) & ~_depth_edges(depth, depth_step)
+        found = _nearest_region(cut, depth, K, centre, radius, pixels, connectivity=4)
+    return found
+
+
+def _nearest_region(candidates: np.ndarray, depth: np.ndarray, K: np.ndarray, centre: np.ndarray, radius: float,
+                    pixels: tuple[int, int], connectivity: int = 8) -> np.ndarray:
+    """`search_mask`'s choice among the connected regions of ``candidates``."""
+    n, labels = cv2.connectedComponents(candidates.astype(np.uint8), connectivity=connectivity)
     labels[depth <= 0] = 0
     area = np.bincount(labels.ravel(), minlength=n)
     xyz = depth_to_xyz(depth, K)
