@@ -58,21 +58,26 @@ def test_predicted_mask_does_not_grow_into_a_hand_at_the_instruments_depth():
     assert (gated & mask).sum() >= 0.95 * mask.sum()  # the instrument itself is all kept
 
 
+def later_frame(parts: list[tuple[tuple[slice, slice], float]]) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    """A frame of `scene`'s drape with grey ``parts`` (image region, depth) on it: rgb, depth, the parts' masks."""
+    rgb, depth, _ = scene()
+    rgb[:] = GREEN
+    depth[:] = 0.5
+    masks = []
+    for region, z in parts:
+        masks.append(np.zeros(depth.shape, bool))
+        masks[-1][region] = True
+        rgb[region] = GREY
+        depth[region] = z
+    return rgb, depth, masks
+
+
 def test_search_mask_finds_the_nearest_instrument_coloured_region_of_plausible_size():
     rgb, depth, mask = scene()
     colours = ColourModel()
     colours.learn(rgb, mask)
     # the bar has moved to the top left; a big grey tray lies bottom right; a few grey speckles
-    rgb2 = np.empty_like(rgb)
-    rgb2[:] = GREEN
-    depth2 = np.full_like(depth, 0.5)
-    moved = np.zeros_like(mask)
-    moved[10:30, 10:110] = True
-    tray = np.zeros_like(mask)
-    tray[70:120, 40:160] = True
-    rgb2[moved | tray] = GREY
-    depth2[moved] = 0.32
-    depth2[tray] = 0.45
+    rgb2, depth2, (moved, tray) = later_frame([(np.s_[10:30, 10:110], 0.32), (np.s_[70:120, 40:160], 0.45)])
     rgb2[5, 150] = GREY
     last = np.array([0.0, 0.0, 0.3])  # last seen at the image centre, 0.3 m
     found = search_mask(colours.posterior(rgb2), depth2, K, last, 0.5, 0.6, (40, 3 * int(mask.sum())))
@@ -86,16 +91,8 @@ def test_search_mask_cuts_a_merged_region_where_the_depth_jumps():
     rgb, depth, mask = scene()
     colours = ColourModel()
     colours.learn(rgb, mask)
-    rgb2 = np.empty_like(rgb)
-    rgb2[:] = GREEN
-    depth2 = np.full_like(depth, 0.5)
-    bar = np.zeros_like(mask)
-    bar[50:70, 10:115] = True
-    hand = np.zeros_like(mask)
-    hand[:, 115:] = True  # touches the bar's end, 8 cm nearer
-    rgb2[bar | hand] = GREY
-    depth2[bar] = 0.32
-    depth2[hand] = 0.24
+    # the hand touches the bar's end, 8 cm nearer
+    rgb2, depth2, (bar, hand) = later_frame([(np.s_[50:70, 10:115], 0.32), (np.s_[:, 115:], 0.24)])
     depth2[60, 60:64] = 0.0  # dropouts on the bar stay inside it
     depth2[30:40, 110:120] = 0.0  # and at the hand's edge
     last = np.array([0.0, 0.0, 0.3])
