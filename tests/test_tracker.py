@@ -177,7 +177,6 @@ def test_tracks_from_the_first_mask_only(synth_seq, tmp_path):
     m = evaluate(tmp_path / "out", seq)
     assert m["add_s_auc"] >= 85 and m["add_auc"] >= 70, (m["add_s_auc"], m["add_auc"])
     truth = {f.id: f.mask & (f.depth > 0) for f in seq}
-    for kf in tracker.pool.keyframes[1:]:
-        iou = (kf.mask & truth[kf.frame_id]).sum() / (kf.mask | truth[kf.frame_id]).sum()
-        assert iou > 0.8, (kf.frame_id, iou)  # 0.68 on the first one when not masked again
+    iou = [(k.mask & truth[k.frame_id]).sum() / (k.mask | truth[k.frame_id]).sum() for k in tracker.pool.keyframes[1:]]
+    assert min(iou) > 0.78 and np.mean(iou) > 0.87, iou  # not masked again: mean 0.85
 
