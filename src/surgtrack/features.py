@@ -29,16 +29,6 @@ class Features:
     def subset(self, idx: np.ndarray) -> Features:
         return Features(self.uv[idx], self.desc[idx], self.xyz[idx], self.normals[idx])
 
-    def on(self, where: np.ndarray) -> Features:
-        """The keypoints whose pixel is True in ``where`` (H, W)."""
-        return self.subset(where[_pixels(self.uv, where.shape)])
-
-
-def _pixels(uv: np.ndarray, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
-    """Row and column indices of the pixels (u, v) fall on, clipped to an image of ``shape``."""
-    return (np.clip(np.round(uv[:, 1]).astype(int), 0, shape[0] - 1),
-            np.clip(np.round(uv[:, 0]).astype(int), 0, shape[1] - 1))
-
 
 class FeatureExtractor:
     """Detect and describe keypoints inside the instrument mask, keep those with trusted depth."""
@@ -81,7 +71,8 @@ class FeatureExtractor:
                 return _empty(self.norm)
             uv = (np.array([k.pt for k in kps], np.float32) + 0.5) / scale - 0.5
         uv = uv + np.array([cs.start, rs.start], np.float32)
-        vi, ui = _pixels(uv, obs.valid.shape)
+        ui = np.clip(np.round(uv[:, 0]).astype(int), 0, obs.valid.shape[1] - 1)
+        vi = np.clip(np.round(uv[:, 1]).astype(int), 0, obs.valid.shape[0] - 1)
         keep = obs.valid[vi, ui]
         return Features(uv[keep], desc[keep], obs.xyz[vi[keep], ui[keep]], obs.normals[vi[keep], ui[keep]])
 

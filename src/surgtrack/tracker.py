@@ -484,13 +484,12 @@ class SurgTracker:
 
     def _remasked(self, obs: Observation, node: _Node, edges: list) -> tuple[Observation, _Node]:
         """A frame that came without a mask, masked again at its tracked pose and its graph optimised once more
-        (eqs. 7-11, the same feature edges; the keypoints already found, those on the new mask): the mask predicted
-        before tracking carries the prediction's error, and parts of the instrument it left out pull the pose
-        towards the prediction."""
+        (eqs. 7-11, the same feature edges): the mask predicted before tracking carries the prediction's error,
+        and parts of the instrument it left out pull the pose towards the prediction."""
         again = preprocess(obs.frame, self._predicted_mask(obs.frame, node.pose), self.cfg.preprocess)
         if again.n_valid < self.cfg.failure.min_pixels:
             return obs, node
-        second = self._node(again, node.features.on(again.valid), node.pose)
+        second = self._node(again, self.extractor(again), node.pose)
         second.pose = orthonormalize(self._optimise(second, edges))
         return again, second
 
