@@ -1,4 +1,5 @@
-"""Lost and found: a full occlusion is reported lost, and tracking resumes when the instrument reappears."""
+"""Lost and found: a full occlusion is reported lost, tracking resumes when the instrument reappears, and a
+re-localisation the model does not fit is refused."""
 
 from __future__ import annotations
 
@@ -6,12 +7,15 @@ import json
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from surgtrack.config import TrackerConfig
+from surgtrack.geometry import inv_T, make_T, rotation_angle_deg
 from surgtrack.io import open_sequence
 from surgtrack.metrics import auc, evaluate
 from surgtrack.pipeline import track_sequence
 from surgtrack.synth import SynthSpec, render_sequence
+from surgtrack.tracker import LOST, RELOCALISED, SurgTracker
 
 
 @pytest.fixture(scope="module")
@@ -39,3 +43,43 @@ def test_full_occlusion_is_lost_then_relocalised(occluded_seq, tmp_path):
     m = evaluate(tmp_path, seq)
     rest = [m["errors"]["add_s"][seq.ids[i]] for i in range(resumed + 2, len(seq))]
     assert auc(np.array([np.inf if e is None else e for e in rest])) >= 80
+
+
+def _lost_after(seq, cfg: TrackerConfig) -> tuple[SurgTracker, np.ndarray]:
+    """A tracker lost at frame 3 (empty mask) after three tracked frames, and the object-frame alignment to gt."""
+    tracker = SurgTracker(cfg)
+    first = tracker.register(seq[0], seq[0].mask)
+    for i in (1, 2):
+        tracker.track(seq[i], seq[i].mask)
+    assert tracker.track(seq[3], np.zeros_like(seq[3].mask)).status == LOST
+    return tracker, inv_T(first) @ seq.gt_poses()[seq.ids[0]]
+
+
+def test_a_relocalisation_the_model_does_not_fit_is_refused(synth_seq, monkeypatch):
+    """A candidate that turns the shaft end for end (what FPFH can return on a long round instrument) is refused:
+    the frame stays lost instead of reporting it and tracking on from it; the true pose is taken."""
+    seq = open_sequence(synth_seq)
+    cfg = TrackerConfig()
+    cfg.sdf.enabled = False
+    cfg.failure.relocalise_window = 0  # no last-pose candidate: only the one given below
+    frame = seq[4]
+
+    def relocalise(candidate_of, max_fit: float) -> tuple[str, np.ndarray | None]:
+        cfg.failure.relocalise_max_fit = max_fit
+        tracker, align = _lost_after(seq, cfg)
+        true = seq.gt_poses()[frame.id] @ inv_T(align)
+        candidate = candidate_of(true, tracker.model_points)
+        monkeypatch.setattr(tracker, "_candidates", lambda obs, feats, last: [(candidate, [], 0)])
+        result = tracker.track(frame, frame.mask)
+        return result.status, None if result.pose is None else inv_T(true) @ result.pose
+
+    def flipped(true: np.ndarray, model: np.ndarray) -> np.ndarray:
+        across = np.linalg.svd(model - model.mean(axis=0))[2][2]  # the model's thinnest direction
+        return true @ make_T(Rotation.from_rotvec(np.pi * across).as_matrix(), np.zeros(3))
+
+    status, _ = relocalise(flipped, 0.005)
+    assert status == LOST
+    status, error = relocalise(flipped, np.inf)  # without the fit check, this wrong pose would be taken
+    assert status == RELOCALISED and rotation_angle_deg(error[:3, :3]) > 90
+    status, error = relocalise(lambda true, model: true, 0.005)
+    assert status == RELOCALISED and np.linalg.norm(error[:3, 3]) < 0.005

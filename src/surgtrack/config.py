@@ -82,6 +82,7 @@ class FailureConfig:
     relocalise_window: int = 15  # frames after a loss in which re-acquisition from the last pose is also tried
     relocalise_candidates: int = 3  # feature RANSAC poses (and FPFH seeds) that compete in re-localisation
     relocalise_prior_null: float = 0.01  # graph.prior_null for re-localisation candidates (prior at the last pose)
+    relocalise_max_fit: float = 0.005  # m, median distance of a re-localised frame's points to the model
     min_confidence: float = 0.25
 
 

@@ -1,4 +1,5 @@
-"""Geometric global registration of a frame's instrument points against the model (FPFH + RANSAC, then ICP).
+"""Geometric registration of a frame's instrument points against the model: global (FPFH + RANSAC, then ICP) and
+coarse-to-fine ICP from a pose guess.
 
 Used where texture is too weak for feature re-localisation, and to find the first pose against a registered model.
 """
@@ -14,9 +15,12 @@ from scipy.spatial import cKDTree
 from .geometry import transform
 
 
+def _pcd(points: np.ndarray, voxel: float) -> o3d.geometry.PointCloud:
+    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64))).voxel_down_sample(voxel)
+
+
 def _cloud(points: np.ndarray, voxel: float) -> tuple[o3d.geometry.PointCloud, o3d.pipelines.registration.Feature]:
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
-    pcd = pcd.voxel_down_sample(voxel)
+    pcd = _pcd(points, voxel)
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2.5 * voxel, max_nn=30))
     fpfh = o3d.pipelines.registration.compute_fpfh_feature(
         pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel, max_nn=100))
@@ -58,3 +62,21 @@ def global_register(points_cam: np.ndarray, model_obj: np.ndarray, voxel: float 
         explained, pose = max(scored, key=lambda sc: sc[0])
         found.append((pose, explained))
     return found
+
+
+def icp_from(points_cam: np.ndarray, model_obj: np.ndarray, init: np.ndarray,
+             gates: Sequence[float] = (0.05, 0.02, 0.008), voxel: float = 0.003) -> np.ndarray:
+    """Pose (object-to-camera) that lays the model on the frame's points, by point-to-point ICP from ``init`` with
+    correspondence gates shrinking through ``gates`` (m): an instrument that moved a few centimetres while it was
+    out of sight is pulled in before the narrow gate pins it. ``init`` is returned when there are too few points."""
+    if len(points_cam) < 30 or len(model_obj) < 30:
+        return init
+    reg = o3d.pipelines.registration
+    # The frame's points are matched to the model, not the other way: the model has sides the frame does not show.
+    seen, model = _pcd(points_cam, voxel), _pcd(model_obj, voxel)
+    cam_to_obj = np.linalg.inv(np.asarray(init, np.float64))
+    for gate in gates:
+        cam_to_obj = np.array(reg.registration_icp(seen, model, gate, cam_to_obj,
+                                                   reg.TransformationEstimationPointToPoint(),
+                                                   reg.ICPConvergenceCriteria(max_iteration=30)).transformation)
+    return np.linalg.inv(cam_to_obj)

@@ -29,7 +29,7 @@ from .geometry import (
     transform,
     voxel_downsample,
 )
-from .global_registration import global_register
+from .global_registration import global_register, icp_from
 from .io import Frame
 from .masking import ColourModel, predict_mask, search_mask
 from .memory_pool import Keyframe, MemoryPool
@@ -309,7 +309,8 @@ class SurgTracker:
     def _candidates(self, obs: Observation, feats: Features,
                     last: np.ndarray) -> list[tuple[np.ndarray, list[tuple], int]]:
         """Candidate poses after a loss: feature RANSAC (eq. 5) against the keyframes (those that saw the last
-        view first) and FPFH registration against the model with a few seeds."""
+        view first), ICP against the model from the last pose, and FPFH registration against the model with a few
+        seeds."""
         cands: list[tuple[np.ndarray, list[tuple], int]] = []
         near = self.pool.select(last, len(self.pool))
         for kf in near + [k for k in self.pool.keyframes if k not in near]:
@@ -319,6 +320,7 @@ class SurgTracker:
                 if len(cands) == self.cfg.failure.relocalise_candidates:
                     break
         if self.model_points is not None:
+            cands.append((icp_from(obs.points()[0], self.model_points, last), [], 0))
             seeds = range(self.cfg.seed, self.cfg.seed + self.cfg.failure.relocalise_candidates)
             for pose, explained in global_register(obs.points()[0], self.model_points, seeds=seeds):
                 if explained >= self.cfg.failure.min_global_overlap:
@@ -331,7 +333,10 @@ class SurgTracker:
         leaves free (a slide along a shaft, a roll about it: back to the last pose; the instrument may have moved
         during the loss, so only truly free directions), and keep the one the model fits best (`_fit_error`);
         among equally good fits, the least motion from ``last``. A candidate whose origin moved further than the
-        physical bound allows over the frames since ``last`` is dropped (a look-alike elsewhere in the image)."""
+        physical bound allows over the frames since ``last`` is dropped (a look-alike elsewhere in the image), and so
+        is one whose median point lies further than ``failure.relocalise_max_fit`` from the model (median: parts of
+        the instrument the model has not seen yet do not count against it): a wrong pose taken here would be tracked
+        on, and its keyframes would spoil the model."""
         if not self.cfg.graph.enabled:
             return cands[0] if cands else None
         scored = []
@@ -341,8 +346,11 @@ class SurgTracker:
             motion = inv_T(last) @ node.pose
             if np.linalg.norm(motion[:3, 3]) > self._reach(obs.frame.index):
                 continue
+            dist = self._model_distances(node)
+            if not np.median(dist) <= self.cfg.failure.relocalise_max_fit:  # the model does not lie on the frame
+                continue
             move = np.linalg.norm(motion[:3, 3]) + 0.1 * np.radians(rotation_angle_deg(motion[:3, :3]))
-            scored.append((self._fit_error(node), move, (node.pose, edges, inliers)))
+            scored.append((self._fit_error(dist), move, (node.pose, edges, inliers)))
         if not scored:
             return None
         best = min(s[0] for s in scored)
@@ -431,9 +439,9 @@ class SurgTracker:
                                          distance_upper_bound=self.cfg.graph.assoc_dist)
         return dist
 
-    def _fit_error(self, node: _Node) -> float:
-        """Mean distance (m, capped at assoc_dist) of the frame's points to the model."""
-        return float(np.mean(np.minimum(self._model_distances(node), self.cfg.graph.assoc_dist)))
+    def _fit_error(self, dist: np.ndarray) -> float:
+        """Mean of `_model_distances` (m), each capped at assoc_dist."""
+        return float(np.mean(np.minimum(dist, self.cfg.graph.assoc_dist)))
 
     def _confidence(self, node: _Node) -> float:
         """Fraction of the frame's points within assoc_dist of the model."""
