@@ -11,10 +11,10 @@ from surgtrack.baselines import (
     FrameToFrameICPTracker,
     KinectFusionTracker,
     RansacOnlyTracker,
-    icp_point_to_plane,
 )
 from surgtrack.bench import METHODS, make_tracker
 from surgtrack.geometry import backproject, inv_T, make_T, so3_exp, transform
+from surgtrack.global_registration import icp
 from surgtrack.io import open_sequence, read_poses
 from surgtrack.metrics import chamfer_cm, evaluate
 from surgtrack.pipeline import track_sequence
@@ -123,6 +123,6 @@ def test_icp_recovers_a_small_rigid_motion():
     motion = make_T(so3_exp(np.radians(5) * np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])),
                     [0.01, -0.004, 0.003])
     source = transform(inv_T(motion), target)
-    T, fitness = icp_point_to_plane(source, target, normals, np.eye(4), (0.02, 0.01, 0.005))
+    T, fitness = icp(source, target, np.eye(4), (0.02, 0.01, 0.005), normals)
     assert fitness > 0.95
     assert np.abs(transform(T, source) - target).max() < 5e-4

@@ -24,20 +24,12 @@ from scipy.spatial import cKDTree
 from .config import TrackerConfig
 from .features import FeatureExtractor, Features, match
 from .geometry import backproject, inv_T, make_T, orthonormalize, transform, voxel_downsample
+from .global_registration import icp, point_cloud
 from .io import Frame
 from .masking import predict_mask
 from .preprocess import Observation, preprocess
 from .ransac import plausible, ransac_pose
 from .tracker import LOST, RELOCALISED, TRACKED, TrackResult, object_origin
-
-_REG = o3d.pipelines.registration
-
-
-def _cloud(points: np.ndarray, normals: np.ndarray | None = None) -> o3d.geometry.PointCloud:
-    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
-    if normals is not None:
-        pc.normals = o3d.utility.Vector3dVector(np.asarray(normals, np.float64))
-    return pc
 
 
 def surface_mask(obs: Observation, erosion: int) -> np.ndarray:
@@ -49,25 +41,6 @@ def surface_mask(obs: Observation, erosion: int) -> np.ndarray:
     if erosion > 0:
         m = cv2.erode(m, np.ones((2 * erosion + 1,) * 2, np.uint8))
     return (m > 0) & (obs.depth > 0)
-
-
-def icp_point_to_plane(source: np.ndarray, target: np.ndarray, target_normals: np.ndarray, init: np.ndarray,
-                       max_dists: tuple[float, ...], iterations: int = 20) -> tuple[np.ndarray, float]:
-    """Coarse-to-fine point-to-plane ICP (Open3D, Tukey-robust) of ``source`` points onto ``target`` points with
-    normals, starting at ``init``: (T with target ~ T @ source, fitness at the finest gate).
-
-    Both clouds are expressed about the target's centroid while aligning: Open3D linearises rotations about the
-    origin, and about a far-away camera centre rotation and translation of a thin object are nearly degenerate."""
-    c = make_T(np.eye(3), -np.mean(target, axis=0))
-    src = _cloud(transform(c, source))
-    tgt = _cloud(transform(c, target), target_normals)
-    T = c @ np.asarray(init, np.float64) @ inv_T(c)
-    fitness = 0.0
-    for d in max_dists:
-        est = _REG.TransformationEstimationPointToPlane(_REG.TukeyLoss(k=d / 2))
-        res = _REG.registration_icp(src, tgt, d, T, est, _REG.ICPConvergenceCriteria(max_iteration=iterations))
-        T, fitness = np.asarray(res.transformation), float(res.fitness)
-    return orthonormalize(inv_T(c) @ T @ c), fitness
 
 
 class BaselineTracker(ABC):
@@ -198,7 +171,7 @@ class KinectFusionTracker(BaselineTracker):
         pts = self._points(obs)
         pts = pts[:: max(1, len(pts) // self.max_points)]
         # Source: the frame's points (camera); target: the model (object frame); so T = inv(pose).
-        T, fitness = icp_point_to_plane(pts, *target, inv_T(self.pose), self.icp_dists)
+        T, fitness = icp(pts, target[0], inv_T(self.pose), self.icp_dists, target[1])
         if fitness < self.min_fitness:
             return None, fitness
         return inv_T(T), fitness
@@ -250,7 +223,7 @@ class FrameToFrameICPTracker(BaselineTracker):
         assert self.pose is not None and self._prev is not None
         pts = self._points(obs)
         pts = pts[:: max(1, len(pts) // self.max_points)]
-        T, fitness = icp_point_to_plane(pts, *self._prev, np.eye(4), self.icp_dists)  # current -> previous
+        T, fitness = icp(pts, self._prev[0], np.eye(4), self.icp_dists, self._prev[1])  # current -> previous
         if fitness < self.min_fitness:
             return None, fitness
         return orthonormalize(inv_T(T) @ self.pose), fitness
@@ -258,7 +231,7 @@ class FrameToFrameICPTracker(BaselineTracker):
     def _update(self, obs: Observation, pose: np.ndarray) -> None:
         """Keep the frame's points with normals (k nearest neighbours, facing the camera) as the next target."""
         pts = self._points(obs)
-        pc = _cloud(pts)
+        pc = point_cloud(pts)
         pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=self.normal_radius, max_nn=30))
         pc.orient_normals_towards_camera_location(np.zeros(3))
         self._prev = pts, np.asarray(pc.normals)

@@ -12,17 +12,44 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
-from .geometry import transform
+from .geometry import inv_T, make_T, orthonormalize, transform
+
+_REG = o3d.pipelines.registration
 
 
-def _pcd(points: np.ndarray, voxel: float) -> o3d.geometry.PointCloud:
-    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64))).voxel_down_sample(voxel)
+def point_cloud(points: np.ndarray, normals: np.ndarray | None = None, voxel: float = 0.0) -> o3d.geometry.PointCloud:
+    """Open3D cloud of (N, 3) points, with normals when given, voxel-downsampled when ``voxel`` > 0."""
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
+    if normals is not None:
+        pc.normals = o3d.utility.Vector3dVector(np.asarray(normals, np.float64))
+    return pc.voxel_down_sample(voxel) if voxel > 0 else pc
 
 
-def _cloud(points: np.ndarray, voxel: float) -> tuple[o3d.geometry.PointCloud, o3d.pipelines.registration.Feature]:
-    pcd = _pcd(points, voxel)
+def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, max_dists: Sequence[float],
+        target_normals: np.ndarray | None = None, iterations: int = 20) -> tuple[np.ndarray, float]:
+    """Coarse-to-fine ICP (Open3D) of ``source`` points onto ``target`` points from ``init``, one pass per
+    correspondence gate in ``max_dists``: (T with target ~ T @ source, fitness at the last gate). Point-to-plane
+    (Tukey-robust) when ``target_normals`` are given, point-to-point otherwise.
+
+    Both clouds are expressed about the target's centroid while aligning: Open3D linearises rotations about the
+    origin, and about a far-away camera centre rotation and translation of a thin object are nearly degenerate."""
+    c = make_T(np.eye(3), -np.mean(target, axis=0))
+    src = point_cloud(transform(c, source))
+    tgt = point_cloud(transform(c, target), target_normals)
+    T = c @ np.asarray(init, np.float64) @ inv_T(c)
+    fitness = 0.0
+    for d in max_dists:
+        est = (_REG.TransformationEstimationPointToPoint() if target_normals is None
+               else _REG.TransformationEstimationPointToPlane(_REG.TukeyLoss(k=d / 2)))
+        res = _REG.registration_icp(src, tgt, d, T, est, _REG.ICPConvergenceCriteria(max_iteration=iterations))
+        T, fitness = np.asarray(res.transformation), float(res.fitness)
+    return orthonormalize(inv_T(c) @ T @ c), fitness
+
+
+def _cloud(points: np.ndarray, voxel: float) -> tuple[o3d.geometry.PointCloud, _REG.Feature]:
+    pcd = point_cloud(points, voxel=voxel)
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2.5 * voxel, max_nn=30))
-    fpfh = o3d.pipelines.registration.compute_fpfh_feature(
+    fpfh = _REG.compute_fpfh_feature(
         pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel, max_nn=100))
     return pcd, fpfh
 
@@ -41,7 +68,6 @@ def global_register(points_cam: np.ndarray, model_obj: np.ndarray, voxel: float 
     if len(points_cam) < 30 or len(model_obj) < 30:
         return []
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
-    reg = o3d.pipelines.registration
     src, src_f = _cloud(model_obj, voxel)
     dst, dst_f = _cloud(points_cam, voxel)
     if len(src.points) < 10 or len(dst.points) < 10:
@@ -51,11 +77,11 @@ def global_register(points_cam: np.ndarray, model_obj: np.ndarray, voxel: float 
     found = []
     for seed in seeds:
         o3d.utility.random.seed(seed)
-        coarse = reg.registration_ransac_based_on_feature_matching(
-            src, dst, src_f, dst_f, True, gate, reg.TransformationEstimationPointToPoint(False), 3,
-            [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(gate)],
-            reg.RANSACConvergenceCriteria(iterations, 0.999))
-        fine = reg.registration_icp(src, dst, gate, coarse.transformation, reg.TransformationEstimationPointToPlane())
+        coarse = _REG.registration_ransac_based_on_feature_matching(
+            src, dst, src_f, dst_f, True, gate, _REG.TransformationEstimationPointToPoint(False), 3,
+            [_REG.CorrespondenceCheckerBasedOnEdgeLength(0.9), _REG.CorrespondenceCheckerBasedOnDistance(gate)],
+            _REG.RANSACConvergenceCriteria(iterations, 0.999))
+        fine = _REG.registration_icp(src, dst, gate, coarse.transformation, _REG.TransformationEstimationPointToPlane())
         # Point-to-plane ICP can slide off a round shaft it cannot pin: keep whichever pose explains more.
         scored = [(overlap(tree, T, dst_pts, gate), T) for T in (np.array(fine.transformation),
                                                                  np.array(coarse.transformation))]
@@ -71,12 +97,8 @@ def icp_from(points_cam: np.ndarray, model_obj: np.ndarray, init: np.ndarray,
     out of sight is pulled in before the narrow gate pins it. ``init`` is returned when there are too few points."""
     if len(points_cam) < 30 or len(model_obj) < 30:
         return init
-    reg = o3d.pipelines.registration
     # The frame's points are matched to the model, not the other way: the model has sides the frame does not show.
-    seen, model = _pcd(points_cam, voxel), _pcd(model_obj, voxel)
-    cam_to_obj = np.linalg.inv(np.asarray(init, np.float64))
-    for gate in gates:
-        cam_to_obj = np.array(reg.registration_icp(seen, model, gate, cam_to_obj,
-                                                   reg.TransformationEstimationPointToPoint(),
-                                                   reg.ICPConvergenceCriteria(max_iteration=30)).transformation)
-    return np.linalg.inv(cam_to_obj)
+    seen = np.asarray(point_cloud(points_cam, voxel=voxel).points)
+    model = np.asarray(point_cloud(model_obj, voxel=voxel).points)
+    cam_to_obj, _ = icp(seen, model, inv_T(init), gates, iterations=30)
+    return inv_T(cam_to_obj)
