@@ -320,9 +320,10 @@ class SurgTracker:
                 if len(cands) == self.cfg.failure.relocalise_candidates:
                     break
         if self.model_points is not None:
-            cands.append((icp_from(obs.points()[0], self.model_points, last), [], 0))
+            points = obs.points()[0]
+            cands.append((icp_from(points, self.model_points, last), [], 0))
             seeds = range(self.cfg.seed, self.cfg.seed + self.cfg.failure.relocalise_candidates)
-            for pose, explained in global_register(obs.points()[0], self.model_points, seeds=seeds):
+            for pose, explained in global_register(points, self.model_points, seeds=seeds):
                 if explained >= self.cfg.failure.min_global_overlap:
                     cands.append((pose, [], 0))
         return cands
