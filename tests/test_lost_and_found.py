@@ -62,6 +62,7 @@ def test_a_relocalisation_the_model_does_not_fit_is_refused(synth_seq, monkeypat
     cfg = TrackerConfig()
     cfg.sdf.enabled = False
     cfg.failure.relocalise_window = 0  # no last-pose candidate: only the one given below
+    cfg.failure.relocalise_every = 1  # and re-localisation tried on every lost frame
     frame = seq[4]
 
     def relocalise(candidate_of, max_fit: float) -> tuple[str, np.ndarray | None]:
@@ -83,3 +84,23 @@ def test_a_relocalisation_the_model_does_not_fit_is_refused(synth_seq, monkeypat
     assert status == RELOCALISED and rotation_angle_deg(error[:3, :3]) > 90
     status, error = relocalise(lambda true, model: true, 0.005)
     assert status == RELOCALISED and np.linalg.norm(error[:3, 3]) < 0.005
+
+
+def test_a_long_loss_is_relocalised_on_every_few_frames_only(synth_seq, monkeypatch):
+    """Re-localisation, the costliest step, runs on every frame of the window after a loss, then on every
+    ``relocalise_every``-th: the frames between are reported lost at once, and a frame that fits is still taken."""
+    seq = open_sequence(synth_seq)
+    cfg = TrackerConfig()
+    cfg.sdf.enabled = False
+    cfg.failure.relocalise_window, cfg.failure.relocalise_every = 4, 3
+    tracker, _ = _lost_after(seq, cfg)
+    tried = []
+    monkeypatch.setattr(tracker, "_relocalise", lambda obs, feats: tried.append(tracker.frames_lost))
+    frame = seq[4]
+    statuses = [tracker.track(frame, frame.mask).status for _ in range(12)]
+    assert statuses == [LOST] * 12
+    assert tried == [1, 2, 3, 4, 7, 10]  # lost frames before each try: the window, then every third
+    monkeypatch.undo()
+    while not tracker._relocalisation_due():
+        assert tracker.track(frame, frame.mask).status == LOST
+    assert tracker.track(frame, frame.mask).status == RELOCALISED

@@ -80,6 +80,7 @@ class FailureConfig:
     min_pixels: int = 150  # fewer instrument pixels with valid depth: lost
     min_global_overlap: float = 0.6  # re-localisation by FPFH registration must explain this fraction of points
     relocalise_window: int = 15  # frames after a loss in which re-acquisition from the last pose is also tried
+    relocalise_every: int = 3  # after relocalise_window lost frames, re-localisation is tried on every n-th frame
     relocalise_candidates: int = 3  # feature RANSAC poses (and FPFH seeds) that compete in re-localisation
     relocalise_prior_null: float = 0.01  # graph.prior_null for re-localisation candidates (prior at the last pose)
     relocalise_max_fit: float = 0.005  # m, median distance of a re-localised frame's points to the model

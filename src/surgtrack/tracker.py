@@ -224,6 +224,8 @@ class SurgTracker:
     def track(self, frame: Frame, mask: np.ndarray | None = None) -> TrackResult:
         """One tracking step (Stage 2): preprocess, coarse pose (eq. 5), posture graph (eqs. 7-11), memory (eq. 6)."""
         clock = _Clock()
+        if self.lost and not self._relocalisation_due():
+            return self._lose(clock)
         self._update_sdf()
         predicted = mask is None
         if predicted:
@@ -366,6 +368,13 @@ class SurgTracker:
         if self.cfg.graph.enabled and self.frames_lost <= self.cfg.failure.relocalise_window:
             cands.append((last, [], 0))
         return self._best_candidate(obs, feats, cands, last)
+
+    def _relocalisation_due(self) -> bool:
+        """Whether to try re-localising this lost frame (step 5): every frame of the first ``relocalise_window``
+        after the loss, then every ``relocalise_every``-th. It is the costliest step, and an instrument that has
+        stayed away that long is found at most ``relocalise_every`` - 1 frames later."""
+        late = self.frames_lost - self.cfg.failure.relocalise_window
+        return late <= 0 or late % max(self.cfg.failure.relocalise_every, 1) == 0
 
     def _reach(self, index: int) -> float:
         """How far (m) the instrument's origin can have moved since the last tracked frame, by frame ``index``:
