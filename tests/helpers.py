@@ -2,12 +2,35 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 import trimesh
 
 from surgtrack.io import ResultWriter
+
+SURGTRACK = Path(sys.executable).with_name("surgtrack")
+
+
+def surgtrack(*args: str | Path, timeout: float = 120) -> subprocess.CompletedProcess:
+    """Run the installed ``surgtrack`` entry point with these arguments, capturing its output."""
+    if not SURGTRACK.is_file():
+        pytest.fail(f"{SURGTRACK}: the surgtrack entry point is not installed beside the interpreter")
+    return subprocess.run([str(SURGTRACK), *map(str, args)], capture_output=True, text=True, timeout=timeout)
+
+
+def assert_one_line_error(run: subprocess.CompletedProcess, *fragments: str) -> str:
+    """A run that stopped with exit status 2 and one ``surgtrack: error:`` line holding every fragment; the line."""
+    assert run.returncode == 2, run.stdout + run.stderr
+    lines = run.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("surgtrack: error: "), run.stderr
+    assert "Traceback" not in run.stderr + run.stdout
+    for f in fragments:
+        assert f in lines[0], lines[0]
+    return lines[0]
 
 
 def write_result(out: Path, poses: dict[str, np.ndarray], mesh: trimesh.Trimesh | None = None) -> Path:

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import pytest
+from helpers import assert_one_line_error, surgtrack
 
 from surgtrack.bench import format_table, method_config, shorten
+from surgtrack.config import TrackerConfig
 from surgtrack.synth import SynthSpec
 
 
@@ -16,6 +18,23 @@ def test_ablations_switch_one_component_each():
     assert method_config("orb").ransac.features == "orb"
     with pytest.raises(ValueError, match="unknown"):
         method_config("bundlesdf")
+
+
+def test_ablations_switch_on_top_of_a_given_config():
+    base = TrackerConfig()
+    base.sdf.background = False
+    base.graph.w_m = 3.0
+    cfg = method_config("no-occ-surf", base)
+    assert not cfg.sdf.occ_surf and not cfg.sdf.background and cfg.graph.w_m == 3.0
+    assert base.sdf.occ_surf  # the given config is left as it was
+    assert method_config("surgtrack", base).to_dict() == base.to_dict()
+
+
+def test_bench_config_errors_are_one_line(tmp_path):
+    bad = tmp_path / "cfg.json"
+    bad.write_text('{"graph": {"no_such_weight": 1}}')
+    assert_one_line_error(surgtrack("bench", "--config", bad, "--out", tmp_path / "b"), "cfg.json", "bad config")
+    assert not (tmp_path / "b").exists()  # nothing rendered or run
 
 
 def test_shorten_scales_occlusion_and_fast_stretches():

@@ -3,36 +3,18 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 import trimesh
-from helpers import write_result
+from helpers import assert_one_line_error, surgtrack, write_result
 
 from surgtrack.geometry import make_T, so3_exp
 from surgtrack.io import SequenceWriter, open_sequence
 
-SURGTRACK = Path(sys.executable).with_name("surgtrack")
 APC_SCENE = "real/apc_shelf_scene/scene-0000"
-
-
-def surgtrack(*args: str | Path) -> subprocess.CompletedProcess:
-    if not SURGTRACK.is_file():
-        pytest.fail(f"{SURGTRACK}: the surgtrack entry point is not installed beside the interpreter")
-    return subprocess.run([str(SURGTRACK), *map(str, args)], capture_output=True, text=True, timeout=120)
-
-
-def assert_one_line_error(run: subprocess.CompletedProcess, *fragments: str) -> None:
-    assert run.returncode == 2, run.stdout + run.stderr
-    lines = run.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("surgtrack: error: "), run.stderr
-    assert "Traceback" not in run.stderr + run.stdout
-    for f in fragments:
-        assert f in lines[0]
 
 
 def shift(x: float, y: float, z: float) -> np.ndarray:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 import multiprocessing
 import resource
@@ -23,9 +24,10 @@ from .synth import SynthSpec, is_rendered, render_sequence, suite_specs
 from .tracker import SurgTracker
 
 
-def method_config(name: str) -> TrackerConfig:
-    """The tracker configuration of a named method (the paper's Table 2 ablations are switches of one config)."""
-    cfg = TrackerConfig()
+def method_config(name: str, base: TrackerConfig | None = None) -> TrackerConfig:
+    """The tracker configuration of a named method (the paper's Table 2 ablations are switches of one config): the
+    method's switch on a copy of ``base`` (default: the defaults)."""
+    cfg = copy.deepcopy(base) if base is not None else TrackerConfig()
     if name == "surgtrack":
         return cfg
     if name == "no-memory-pool":
@@ -47,11 +49,12 @@ BASELINES: dict[str, type[BaselineTracker]] = {
 METHODS = SURGTRACK_METHODS + tuple(BASELINES)
 
 
-def make_tracker(name: str) -> SurgTracker | BaselineTracker:
-    """A fresh tracker for a named method: a SurgTracker variant (``method_config``) or a baseline."""
+def make_tracker(name: str, base: TrackerConfig | None = None) -> SurgTracker | BaselineTracker:
+    """A fresh tracker for a named method: a SurgTracker variant (``method_config`` on ``base``) or a baseline
+    (which has settings of its own)."""
     if name in BASELINES:
         return BASELINES[name]()
-    return SurgTracker(method_config(name))
+    return SurgTracker(method_config(name, base))
 
 
 def shorten(spec: SynthSpec, frames: int) -> SynthSpec:
@@ -64,13 +67,15 @@ def shorten(spec: SynthSpec, frames: int) -> SynthSpec:
 
 
 def run_bench(suite: str, methods: list[str], root: Path | str, short: bool = False, frames: int | None = None,
-              first_mask_only: bool = False, log: Callable[[str], None] = print) -> dict:
+              first_mask_only: bool = False, log: Callable[[str], None] = print,
+              config: TrackerConfig | None = None) -> dict:
     """Render the suite if needed, run every method on every sequence, evaluate; returns the bench.json dict.
     ``log`` gets a line per rendered and per tracked sequence (it runs in each method's process: a module-level
-    function such as ``print``)."""
+    function such as ``print``). ``config`` is the SurgTracker methods' base configuration (default: the
+    defaults); bench.json records it."""
     root = Path(root)
     results: dict = {"suite": suite, "short": short, "frames": frames, "first_mask_only": first_mask_only,
-                     "methods": {}}
+                     "config": None if config is None else config.to_dict(), "methods": {}}
     specs = suite_specs(suite, short)
     for name, spec in specs:
         spec = shorten(spec, frames) if frames else spec
@@ -87,7 +92,7 @@ def run_bench(suite: str, methods: list[str], root: Path | str, short: bool = Fa
         # Each method runs in a child process of its own, so its peak memory is its own.
         with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("fork")) as pool:
             per_seq, errors[method], first_seq[method], peak = pool.submit(
-                _run_method, method, names, root, first_mask_only, log).result()
+                _run_method, method, names, root, first_mask_only, log, config).result()
         results["methods"][method] = {"sequences": per_seq, **_mean(per_seq), "peak_rss_mb": peak}
     results["plots"] = [p.name for p in (
         plot_accuracy({k: v["ADD"] for k, v in errors.items()}, root / "accuracy_add.png", "ADD"),
@@ -98,8 +103,8 @@ def run_bench(suite: str, methods: list[str], root: Path | str, short: bool = Fa
     return results
 
 
-def _run_method(method: str, names: list[str], root: Path, first_mask_only: bool,
-                log: Callable[[str], None]) -> tuple[dict, dict, dict, float]:
+def _run_method(method: str, names: list[str], root: Path, first_mask_only: bool, log: Callable[[str], None],
+                config: TrackerConfig | None = None) -> tuple[dict, dict, dict, float]:
     """One method over every sequence: per-sequence figures, all per-frame errors, the first sequence's ADD errors
     and the process's peak memory (MB)."""
     per_seq, errors, first = {}, {"ADD": [], "ADD-S": []}, {}
@@ -107,7 +112,7 @@ def _run_method(method: str, names: list[str], root: Path, first_mask_only: bool
         seq = open_sequence(root / "data" / name)
         out = root / method / name
         t0 = time.perf_counter()
-        tracker = make_tracker(method)
+        tracker = make_tracker(method, config)
         summary = track_sequence(seq, out, tracker.cfg, first_mask_only, tracker=tracker)
         m = evaluate(out, seq)
         errors["ADD"] += list(m["errors"]["add"].values())

@@ -431,6 +431,9 @@ def bench(
     short: Annotated[bool, typer.Option(help="40-frame 320x240 variants")] = False,
     frames: Annotated[int | None, typer.Option(help="cut every sequence to this many frames")] = None,
     first_mask_only: Annotated[bool, typer.Option(help="give the trackers the first mask only")] = False,
+    config: Annotated[Path | None, typer.Option(
+        help="JSON config for the surgtrack methods, the ablations switched on top (see OUT/config.json of any run); "
+             '{"sdf": {"background": false}} makes a run repeatable')] = None,
 ) -> None:
     """Run methods over a synthetic suite, evaluate, and print the paper-style table (writes bench.json/.md)."""
     from .bench import METHODS, format_table, run_bench
@@ -439,7 +442,8 @@ def bench(
     for m in names:
         if m not in METHODS:
             fail(f"unknown method {m!r}; choose from {', '.join(METHODS)}")
-    results = run_bench(suite, names, out, short, frames, first_mask_only, log=typer.echo)
+    cfg = load_config(config) if config is not None else None
+    results = run_bench(suite, names, out, short, frames, first_mask_only, log=typer.echo, config=cfg)
     typer.echo(format_table(results))
 
 
