@@ -306,14 +306,16 @@ def test_register_then_track_another_video(synth_seq, second_video, tmp_path):
     assert run.returncode == 0, run.stderr
     video = open_sequence(second_video)
     m = evaluate(out, video)
-    # Measured: ADD-S AUC 99.1-99.2 %, ADD AUC 95.5-97.5 %, no frame lost.
+    # Measured: ADD-S AUC 99.0 %, ADD AUC 97.1 %, no frame lost (with the field fitted in the background, which
+    # depends on timing: 99.1-99.2 %, 95.5-97.5 %).
     assert m["missing"] == 0
     assert m["add_s_auc"] >= 85, m["add_s_auc"]
     assert m["add_auc"] >= 70, m["add_auc"]
     # Poses are in the model's object frame: through the scan's first-frame alignment to the ground-truth object
     # frame, the first pose of the new video lands near its ground truth, where a tracker that ignored the model
-    # would be arbitrarily off. Measured 104 mm: the first frame shows a bare stretch of shaft, and the model from
-    # the 30-frame scan fits it equally well slid along the shaft (FPFH + RANSAC finds that slide for every seed).
+    # would be arbitrarily off. Measured 48 mm (104 mm with the field fitted in the background): the first frame
+    # shows a bare stretch of shaft, and the model from the 30-frame scan fits it equally well slid along the shaft
+    # (FPFH + RANSAC finds such a slide for every seed).
     scan_pose0 = read_poses(scan_dir / "ob_in_cam")[open_sequence(synth_seq).ids[0]]
     add0 = first_pose_error(synth_seq, scan_pose0, video, read_poses(out / "ob_in_cam")[video.ids[0]])
     assert add0 < 0.12, add0
