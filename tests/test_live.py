@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import json
 import socket
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -15,6 +13,7 @@ import numpy as np
 import pyigtl
 import pytest
 from click.testing import Result
+from helpers import surgtrack
 from typer.testing import CliRunner
 
 from surgtrack.cli import app
@@ -25,14 +24,6 @@ from surgtrack.io import open_sequence, read_poses
 from surgtrack.pipeline import track_sequence
 from surgtrack.realsense import RealSenseError, RealSenseSource, box_mask, parse_box, record_sequence
 from surgtrack.tracker import LOST, TrackResult
-
-SURGTRACK = Path(sys.executable).with_name("surgtrack")
-
-
-def surgtrack(*args: str | Path) -> subprocess.CompletedProcess:
-    if not SURGTRACK.is_file():
-        pytest.fail(f"{SURGTRACK}: the surgtrack entry point is not installed beside the interpreter")
-    return subprocess.run([str(SURGTRACK), *map(str, args)], capture_output=True, text=True, timeout=120)
 
 
 def cli(*args: str | Path) -> Result:

@@ -123,10 +123,14 @@ def test_round_trip_preserves_keyframes_sdf_and_mesh(scanned, tmp_path):
 
 def test_tracker_uses_the_loaded_model_from_the_first_frame(scanned):
     model, path = scanned
-    tracker = SurgTracker(light_config(), model=load_model(path))
+    cfg = light_config()
+    cfg.sdf.background = True  # the loaded field goes on refitting on a worker thread
+    tracker = SurgTracker(cfg, model=load_model(path))
     assert tracker.sdf is not None and tracker.sdf.fitted
     assert len(tracker.pool) == len(model.keyframes)
     d, _ = tracker.sdf.query(model.mesh.vertices)
+    assert tracker.fitter is not None
+    tracker.fitter.close()
     assert np.median(np.abs(d)) < 1e-3
 
 
