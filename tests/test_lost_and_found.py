@@ -1,9 +1,10 @@
 """Lost and found: a full occlusion is reported lost, tracking resumes when the instrument reappears, and a
-re-localisation the model does not fit is refused."""
+re-localisation that the model does not fit, or whose markings do not match the keyframes', is refused."""
 
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -63,6 +64,7 @@ def test_a_relocalisation_the_model_does_not_fit_is_refused(synth_seq, monkeypat
     cfg.sdf.enabled = False
     cfg.failure.relocalise_window = 0  # no last-pose candidate: only the one given below
     cfg.failure.relocalise_every = 1  # and re-localisation tried on every lost frame
+    cfg.failure.relocalise_min_ncc = -1.0  # the fit check alone (the appearance check: the test below)
     frame = seq[4]
 
     def relocalise(candidate_of, max_fit: float) -> tuple[str, np.ndarray | None]:
@@ -84,6 +86,54 @@ def test_a_relocalisation_the_model_does_not_fit_is_refused(synth_seq, monkeypat
     assert status == RELOCALISED and rotation_angle_deg(error[:3, :3]) > 90
     status, error = relocalise(lambda true, model: true, 0.005)
     assert status == RELOCALISED and np.linalg.norm(error[:3, 3]) < 0.005
+
+
+def test_a_relocalisation_that_fits_but_looks_wrong_is_refused(synth_seq, monkeypatch):
+    """A candidate at which the frame fits the model's geometry but not its markings (here: the true pose, with
+    the frame's intensities inverted, as another instrument of the same shape would look) is refused by the
+    appearance check; with the frame as it is, the same pose is taken, its intensities correlating with the
+    keyframes'."""
+    seq = open_sequence(synth_seq)
+    cfg = TrackerConfig()
+    cfg.sdf.enabled = False
+    cfg.failure.relocalise_window = 0
+    cfg.failure.relocalise_every = 1
+    frame = seq[4]
+
+    def relocalise(rgb: np.ndarray) -> tuple[str, float | None]:
+        tracker, align = _lost_after(seq, cfg)
+        true = seq.gt_poses()[frame.id] @ inv_T(align)
+        monkeypatch.setattr(tracker, "_candidates", lambda obs, feats, last: [(true, [], 0)])
+        looks: list[float | None] = []
+        appearance = tracker._appearance
+        monkeypatch.setattr(tracker, "_appearance", lambda node, obs: looks.append(appearance(node, obs)) or looks[-1])
+        return tracker.track(replace(frame, rgb=rgb), frame.mask).status, looks[0]
+
+    status, looks = relocalise(frame.rgb)
+    assert status == RELOCALISED and looks is not None and looks > 0.5
+    status, looks = relocalise(255 - frame.rgb)
+    assert status == LOST and looks is not None and looks < cfg.failure.relocalise_min_ncc
+
+
+def test_a_candidate_keeps_where_it_puts_the_shaft(synth_seq, monkeypatch):
+    """Re-localised many frames after the loss, the true pose stays true: the graph refines a candidate with its
+    motion prior at the candidate itself, not at the last tracked pose (which would pull its slide along the
+    shaft, which the frame's geometry leaves free, back to where the shaft was before the loss)."""
+    seq = open_sequence(synth_seq)
+    cfg = TrackerConfig()
+    cfg.sdf.enabled = False
+    cfg.failure.relocalise_window = 0
+    cfg.failure.relocalise_every = 1
+    tracker, align = _lost_after(seq, cfg)
+    frame = seq[len(seq) - 1]
+    true = seq.gt_poses()[frame.id] @ inv_T(align)
+    moved = inv_T(tracker.recent[-1].pose) @ true
+    assert np.linalg.norm(moved[:3, 3]) > 0.02  # the instrument moved on during the loss
+    monkeypatch.setattr(tracker, "_candidates", lambda obs, feats, last: [(true, [], 0)])
+    result = tracker.track(frame, frame.mask)
+    assert result.status == RELOCALISED
+    error = inv_T(true) @ result.pose
+    assert np.linalg.norm(error[:3, 3]) < 0.005 and rotation_angle_deg(error[:3, :3]) < 5
 
 
 def test_a_long_loss_is_relocalised_on_every_few_frames_only(synth_seq, monkeypatch):

@@ -90,6 +90,8 @@ def test_round_trip_preserves_keyframes_sdf_and_mesh(scanned, tmp_path):
         np.testing.assert_array_equal(b.normals, a.normals)
         np.testing.assert_array_equal(b.mask, a.mask)
         np.testing.assert_allclose(b.depth, a.depth, atol=1e-6)  # the synthetic depth is whole millimetres
+        assert a.image is not None and a.image.shape == a.depth.shape
+        np.testing.assert_array_equal(b.image, a.image)
     np.testing.assert_array_equal(back.K, model.K)
     assert back.config == model.config and back.info == model.info and back.info["frames"] == 10
     assert read_meta(path)["created_by"].startswith("surgtrack ")
@@ -178,6 +180,19 @@ def test_version_1_file_reads_with_an_axis_aligned_grid(scanned, tmp_path):
     np.testing.assert_array_equal(old.sdf.rotation, np.eye(3))
     assert not np.allclose(model.sdf.rotation, np.eye(3))  # the scan's box follows the instrument
     np.testing.assert_array_equal(old.sdf.grid.origin, model.sdf.grid.origin)
+
+
+def test_a_file_without_keyframe_images_loads_without_them(scanned, tmp_path):
+    """Files written before the keyframes' intensity images were stored load; those keyframes have none (the
+    appearance check of re-localisation then skips them)."""
+    model, path = scanned
+    meta = read_meta(path)
+    for km in meta["keyframes"]:
+        km.pop("image")
+    drop = tuple(f"keyframes/{i:03d}/image.npy" for i in range(len(meta["keyframes"])))
+    old = load_model(rewrite(path, tmp_path / "noimage.stm", meta=meta, drop=drop))
+    assert len(old.keyframes) == len(model.keyframes)
+    assert all(kf.image is None for kf in old.keyframes)
 
 
 def _truncated(path: Path, dst: Path) -> Path:

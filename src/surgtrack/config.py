@@ -82,8 +82,11 @@ class FailureConfig:
     relocalise_window: int = 15  # frames after a loss in which re-acquisition from the last pose is also tried
     relocalise_every: int = 3  # after relocalise_window lost frames, re-localisation is tried on every n-th frame
     relocalise_candidates: int = 3  # feature RANSAC poses (and FPFH seeds) that compete in re-localisation
-    relocalise_prior_null: float = 0.01  # graph.prior_null for re-localisation candidates (prior at the last pose)
+    relocalise_prior_null: float = 0.01  # graph.prior_null for re-localisation candidates (prior at each candidate)
     relocalise_max_fit: float = 0.005  # m, median distance of a re-localised frame's points to the model
+    relocalise_min_ncc: float = 0.2  # appearance: least intensity NCC with a keyframe that sees the frame (-1: off)
+    appearance_depth_tol: float = 0.005  # m, a frame's point is seen by a keyframe when its depth agrees this well
+    appearance_min_points: int = 100  # fewer points seen by every keyframe: no appearance check
     min_confidence: float = 0.25
 
 

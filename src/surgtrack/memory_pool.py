@@ -30,6 +30,7 @@ class Keyframe:
     mask: np.ndarray  # (H, W) bool
     K: np.ndarray
     tracked_pose: np.ndarray | None = None  # the pose tracking gave it (pose may be refined with the SDF since)
+    image: np.ndarray | None = None  # (H, W) uint8 intensity, for the appearance check of re-localisation
 
     def __post_init__(self) -> None:
         if self.tracked_pose is None:
@@ -73,13 +74,15 @@ class MemoryPool:
         nearest[0] = -np.inf  # the first keyframe anchors the object frame
         return int(np.argmax(nearest))
 
-    def select(self, pose: np.ndarray, n: int, exclude: set[str] = frozenset()) -> list[Keyframe]:
-        """Up to n keyframes whose view overlaps the current one (optical axes within overlap_normal_deg), nearest
-        in viewing direction first."""
+    def select(self, pose: np.ndarray, n: int, exclude: set[str] = frozenset(),
+               within_deg: float | None = None) -> list[Keyframe]:
+        """Up to n keyframes whose view overlaps the current one (optical axes within ``within_deg``, by default
+        overlap_normal_deg), nearest in viewing direction first."""
         if not self.keyframes:
             return []
         d = pose[2, :3]
         cands = [k for k in self.keyframes if k.frame_id not in exclude]
         ang = np.array([np.degrees(np.arccos(np.clip(k.view_dir @ d, -1, 1))) for k in cands])
         order = np.argsort(ang)
-        return [cands[i] for i in order if ang[i] <= self.cfg.overlap_normal_deg][:n]
+        limit = self.cfg.overlap_normal_deg if within_deg is None else within_deg
+        return [cands[i] for i in order if ang[i] <= limit][:n]

@@ -11,7 +11,8 @@ and arrays in NumPy's ``.npy`` format (read without pickle). Format version 2:
                                                        "converged", "config"},
                                         "mesh": {"vertices": V, "faces": F},
                                         "keyframes": [{"id", "pose" (4x4 object-to-camera), "K", "K_grid",
-                                                       "image_size" [H, W], "grid_size" [h, w], "features" N}, ...]}
+                                                       "image_size" [H, W], "grid_size" [h, w], "features" N,
+                                                       "image" true when image.npy is there}, ...]}
     sdf/psi.npy                        float16 (nx, ny, nz): Psi / truncation on the grid nodes, node (i, j, k) at
                                        R^T (origin + voxel (i, j, k)) in the object frame, R the 3x3 "rotation"
                                        (the box's axes as rows; version 1 files have none: identity) (truncation in the
@@ -27,6 +28,8 @@ and arrays in NumPy's ``.npy`` format (read without pickle). Format version 2:
     keyframes/NNN/grid_normals.npy     float32 (h, w, 3)
     keyframes/NNN/depth.npy            uint16 (H, W) full depth in units of depth_unit_m, 0 = invalid
     keyframes/NNN/mask.npy             uint8 (ceil(H * W / 8),) instrument mask, np.packbits of the row-major bits
+    keyframes/NNN/image.npy            uint8 (H, W) intensity, for re-localisation's appearance check (optional:
+                                       files written before it have none, and that check then skips the keyframe)
 
 Poses and intrinsics live in meta.json (JSON floats round-trip exactly). The object frame is the scan's (the first
 frame of the registration video). Keyframe ids are the scan's frame ids prefixed with ``model:`` so that they never
@@ -141,9 +144,11 @@ def save_model(model: InstrumentModel, path: str | Path) -> Path:
         units = np.round(np.nan_to_num(np.asarray(kf.depth, np.float64)) / DEPTH_UNIT_M)
         arrays[pre + "depth.npy"] = np.where((units > 0) & (units <= 65535), units, 0).astype(np.uint16)
         arrays[pre + "mask.npy"] = np.packbits(np.asarray(kf.mask, bool).reshape(-1))
+        if kf.image is not None:
+            arrays[pre + "image.npy"] = np.asarray(kf.image, np.uint8)
         kf_meta.append({"id": kf.frame_id, "pose": _list(kf.pose), "K": _list(kf.K), "K_grid": _list(kf.K_grid),
                         "image_size": list(kf.depth.shape[:2]), "grid_size": list(kf.xyz.shape[:2]),
-                        "features": len(f)})
+                        "features": len(f), "image": kf.image is not None})
     meta = {
         "format": FORMAT,
         "version": VERSION,
@@ -308,6 +313,7 @@ def _build(r: _Reader, meta: dict, device: str | None) -> InstrumentModel:
             depth=(depth * unit).astype(np.float32),
             mask=mask,
             K=_matrix(r, km["K"], (3, 3), f"keyframe {i} K"),
+            image=r.array(pre + "image.npy", (h_img, w_img), ("uint8",)) if km.get("image") else None,
         ))
     descs = {kf.features.desc.shape[1:] + (kf.features.desc.dtype.name,) for kf in keyframes if len(kf.features)}
     if len(descs) > 1:

@@ -13,11 +13,13 @@ from __future__ import annotations
 import time
 from collections import deque
 from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
+from .appearance import intensity, keyframe_ncc, sample
 from .config import SDFConfig, TrackerConfig
 from .features import FeatureExtractor, Features, match
 from .geometry import (
@@ -25,6 +27,7 @@ from .geometry import (
     inv_T,
     make_T,
     orthonormalize,
+    project,
     rotation_angle_deg,
     transform,
     voxel_downsample,
@@ -68,6 +71,16 @@ class _Node:
 
     def graph_node(self, fixed: bool) -> GraphNode:
         return GraphNode(self.pose, self.xyz, self.normals, self.K_grid, fixed)
+
+
+class _Candidate(NamedTuple):
+    """A re-localisation candidate after refinement: its node, `_fit_error`, `_appearance` and motion from the
+    last tracked pose (m, plus 0.1 m a radian)."""
+
+    node: _Node
+    fit: float
+    looks: float | None
+    move: float
 
 
 class _Clock:
@@ -332,33 +345,44 @@ class SurgTracker:
 
     def _best_candidate(self, obs: Observation, feats: Features, cands: list[tuple[np.ndarray, list[tuple], int]],
                         last: np.ndarray) -> tuple[np.ndarray, list[tuple], int] | None:
-        """Refine each candidate by the posture graph, its motion prior at ``last`` along the directions the frame
-        leaves free (a slide along a shaft, a roll about it: back to the last pose; the instrument may have moved
-        during the loss, so only truly free directions), and keep the one the model fits best (`_fit_error`);
-        among equally good fits, the least motion from ``last``. A candidate whose origin moved further than the
-        physical bound allows over the frames since ``last`` is dropped (a look-alike elsewhere in the image), and so
-        is one whose median point lies further than ``failure.relocalise_max_fit`` from the model (median: parts of
-        the instrument the model has not seen yet do not count against it): a wrong pose taken here would be tracked
-        on, and its keyframes would spoil the model."""
+        """Refine each candidate (`_refined`) and keep the one the model fits best (`_fit_error`); among equally
+        good fits, the one whose appearance agrees best with the keyframes (`_appearance`), then the least motion
+        from ``last``. A candidate whose appearance disagrees (NCC below ``failure.relocalise_min_ncc``: the
+        geometry fits, the markings do not, as for a round shaft turned end for end) is dropped."""
         if not self.cfg.graph.enabled:
             return cands[0] if cands else None
-        scored = []
+        kept = []
         for pose, edges, inliers in cands:
-            node = self._node(obs, feats, orthonormalize(pose))
-            node.pose = orthonormalize(self._optimise(node, list(edges), last, self.cfg.failure.relocalise_prior_null))
-            motion = inv_T(last) @ node.pose
-            if np.linalg.norm(motion[:3, 3]) > self._reach(obs.frame.index):
-                continue
-            dist = self._model_distances(node)
-            if not np.median(dist) <= self.cfg.failure.relocalise_max_fit:  # the model does not lie on the frame
-                continue
-            move = np.linalg.norm(motion[:3, 3]) + 0.1 * np.radians(rotation_angle_deg(motion[:3, :3]))
-            scored.append((self._fit_error(dist), move, (node.pose, edges, inliers)))
-        if not scored:
+            c = self._refined(obs, feats, pose, edges, last)
+            if c is not None and (c.looks is None or c.looks >= self.cfg.failure.relocalise_min_ncc):
+                kept.append((c, edges, inliers))
+        if not kept:
             return None
-        best = min(s[0] for s in scored)
-        tied = [s for s in scored if s[0] <= 1.2 * best + 5e-4]
-        return min(tied, key=lambda s: (s[1], s[0]))[2]
+        best = min(c.fit for c, _, _ in kept)
+        tied = [k for k in kept if k[0].fit <= 1.2 * best + 5e-4]
+        c, edges, inliers = min(tied, key=lambda k: (-(k[0].looks if k[0].looks is not None else -1.0), k[0].move))
+        return c.node.pose, edges, inliers
+
+    def _refined(self, obs: Observation, feats: Features, pose: np.ndarray, edges: list[tuple],
+                 last: np.ndarray) -> _Candidate | None:
+        """A re-localisation candidate refined by the posture graph, its motion prior at the candidate itself along
+        the directions the frame leaves free (a slide along a shaft, a turn about it stay where the candidate put
+        them; a prior at ``last`` would pull them back to where the instrument was before the loss). None when its
+        origin moved further than the physical bound allows over the frames since ``last`` (a look-alike elsewhere
+        in the image), or when its median point lies further than ``failure.relocalise_max_fit`` from the model
+        (median: parts of the instrument the model has not seen yet do not count against it): a wrong pose taken
+        here would be tracked on, and its keyframes would spoil the model."""
+        node = self._node(obs, feats, orthonormalize(pose))
+        node.pose = orthonormalize(self._optimise(node, list(edges), node.pose.copy(),
+                                                  self.cfg.failure.relocalise_prior_null))
+        motion = inv_T(last) @ node.pose
+        if np.linalg.norm(motion[:3, 3]) > self._reach(obs.frame.index):
+            return None
+        dist = self._model_distances(node)
+        if not np.median(dist) <= self.cfg.failure.relocalise_max_fit:  # the model does not lie on the frame
+            return None
+        move = np.linalg.norm(motion[:3, 3]) + 0.1 * np.radians(rotation_angle_deg(motion[:3, :3]))
+        return _Candidate(node, self._fit_error(dist), self._appearance(node, obs), move)
 
     def _relocalise(self, obs: Observation, feats: Features) -> tuple[np.ndarray, list[tuple], int] | None:
         """Re-localisation after a loss (step 5) against the memory pool and the model; shortly after the loss the
@@ -449,6 +473,17 @@ class SurgTracker:
                                          distance_upper_bound=self.cfg.graph.assoc_dist)
         return dist
 
+    def _appearance(self, node: _Node, obs: Observation) -> float | None:
+        """Best intensity NCC (`appearance.keyframe_ncc`) of the frame at ``node.pose`` with the three keyframes
+        nearest in viewing direction; None when none of them sees enough of it."""
+        f = self.cfg.failure
+        pts = node.xyz[node.xyz[..., 2] > 0]
+        values, _ = sample(intensity(obs.frame.rgb), project(pts, obs.K)[0])
+        scores = [keyframe_ncc(pts, values, node.pose, kf, f.appearance_depth_tol, f.appearance_min_points)
+                  for kf in self.pool.select(node.pose, 3, within_deg=180.0)]
+        scores = [s for s in scores if s is not None]
+        return max(scores) if scores else None
+
     def _fit_error(self, dist: np.ndarray) -> float:
         """Mean of `_model_distances` (m), each capped at assoc_dist."""
         return float(np.mean(np.minimum(dist, self.cfg.graph.assoc_dist)))
@@ -459,7 +494,7 @@ class SurgTracker:
 
     def _add_keyframe(self, node: _Node, obs: Observation) -> None:
         kf = Keyframe(node.frame_id, node.pose, node.features, node.xyz, node.normals, node.K_grid,
-                      obs.frame.depth, obs.mask, obs.K)
+                      obs.frame.depth, obs.mask, obs.K, image=intensity(obs.frame.rgb))
         self.pool.add(kf)
         self._remember_points(kf)
         if (len(self.pool) - 1) % self.cfg.sdf.refit_every:
