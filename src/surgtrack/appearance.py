@@ -4,7 +4,8 @@ in the keyframes that see them at that pose, as they look now?
 Geometry alone cannot tell a round shaft from itself turned end for end; the markings can. The frame's points,
 placed in a keyframe by the hypothesis, are compared by intensity with what the keyframe saw there: the normalised
 cross-correlation (NCC) is high when the markings line up and near 0 or below when they do not. NCC is unchanged
-by the light's gain and offset between the two views.
+by the light's gain and offset between the two views. Shading counts as much as markings, so on a dark shaft with
+few markings the signal is weak: the check refuses clear mismatches, and only breaks ties otherwise.
 """
 
 from __future__ import annotations
