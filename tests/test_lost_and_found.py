@@ -106,7 +106,7 @@ def test_a_relocalisation_that_fits_but_looks_wrong_is_refused(synth_seq, monkey
         monkeypatch.setattr(tracker, "_candidates", lambda obs, feats, last: [(true, [], 0)])
         looks: list[float | None] = []
         appearance = tracker._appearance
-        monkeypatch.setattr(tracker, "_appearance", lambda node, obs: looks.append(appearance(node, obs)) or looks[-1])
+        monkeypatch.setattr(tracker, "_appearance", lambda *a: looks.append(appearance(*a)) or looks[-1])
         return tracker.track(replace(frame, rgb=rgb), frame.mask).status, looks[0]
 
     status, looks = relocalise(frame.rgb)

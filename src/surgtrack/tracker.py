@@ -351,10 +351,18 @@ class SurgTracker:
         geometry fits, the markings do not, as for a round shaft turned end for end) is dropped."""
         if not self.cfg.graph.enabled:
             return cands[0] if cands else None
+        refined = [(c, edges, inliers) for pose, edges, inliers in cands
+                   if (c := self._refined(obs, feats, pose, edges, last)) is not None]
+        if not refined:
+            return None
+        # The candidates share the frame's points (camera frame); their intensities are read once.
+        xyz = refined[0][0].node.xyz
+        points = xyz[xyz[..., 2] > 0]
+        values, _ = sample(intensity(obs.frame.rgb), project(points, obs.K)[0])
         kept = []
-        for pose, edges, inliers in cands:
-            c = self._refined(obs, feats, pose, edges, last)
-            if c is not None and (c.looks is None or c.looks >= self.cfg.failure.relocalise_min_ncc):
+        for c, edges, inliers in refined:
+            c = c._replace(looks=self._appearance(c.node.pose, points, values))
+            if c.looks is None or c.looks >= self.cfg.failure.relocalise_min_ncc:
                 kept.append((c, edges, inliers))
         if not kept:
             return None
@@ -367,7 +375,8 @@ class SurgTracker:
                  last: np.ndarray) -> _Candidate | None:
         """A re-localisation candidate refined by the posture graph, its motion prior at the candidate itself along
         the directions the frame leaves free (a slide along a shaft, a turn about it stay where the candidate put
-        them; a prior at ``last`` would pull them back to where the instrument was before the loss). None when its
+        them; a prior at ``last`` would pull them back to where the instrument was before the loss), its appearance
+        not yet scored. None when its
         origin moved further than the physical bound allows over the frames since ``last`` (a look-alike elsewhere
         in the image), or when its median point lies further than ``failure.relocalise_max_fit`` from the model
         (median: parts of the instrument the model has not seen yet do not count against it): a wrong pose taken
@@ -382,7 +391,7 @@ class SurgTracker:
         if not np.median(dist) <= self.cfg.failure.relocalise_max_fit:  # the model does not lie on the frame
             return None
         move = np.linalg.norm(motion[:3, 3]) + 0.1 * np.radians(rotation_angle_deg(motion[:3, :3]))
-        return _Candidate(node, self._fit_error(dist), self._appearance(node, obs), move)
+        return _Candidate(node, self._fit_error(dist), None, move)
 
     def _relocalise(self, obs: Observation, feats: Features) -> tuple[np.ndarray, list[tuple], int] | None:
         """Re-localisation after a loss (step 5) against the memory pool and the model; shortly after the loss the
@@ -473,14 +482,13 @@ class SurgTracker:
                                          distance_upper_bound=self.cfg.graph.assoc_dist)
         return dist
 
-    def _appearance(self, node: _Node, obs: Observation) -> float | None:
-        """Best intensity NCC (`appearance.keyframe_ncc`) of the frame at ``node.pose`` with the three keyframes
-        nearest in viewing direction; None when none of them sees enough of it."""
+    def _appearance(self, pose: np.ndarray, points: np.ndarray, values: np.ndarray) -> float | None:
+        """Best intensity NCC (`appearance.keyframe_ncc`) of the frame's instrument ``points`` (camera frame) and
+        their intensities ``values``, at object pose ``pose``, with the three keyframes nearest in viewing
+        direction; None when none of them sees enough of them."""
         f = self.cfg.failure
-        pts = node.xyz[node.xyz[..., 2] > 0]
-        values, _ = sample(intensity(obs.frame.rgb), project(pts, obs.K)[0])
-        scores = [keyframe_ncc(pts, values, node.pose, kf, f.appearance_depth_tol, f.appearance_min_points)
-                  for kf in self.pool.select(node.pose, 3, within_deg=180.0)]
+        scores = [keyframe_ncc(points, values, pose, kf, f.appearance_depth_tol, f.appearance_min_points)
+                  for kf in self.pool.select(pose, 3, within_deg=180.0)]
         scores = [s for s in scores if s is not None]
         return max(scores) if scores else None
 
