@@ -18,7 +18,7 @@ from typer.testing import CliRunner
 
 from surgtrack.cli import app
 from surgtrack.config import TrackerConfig
-from surgtrack.geometry import rotation_angle_deg
+from surgtrack.geometry import backproject, inv_T, transform
 from surgtrack.igtl import PoseStreamer, pose_to_igtl
 from surgtrack.io import open_sequence, read_poses
 from surgtrack.pipeline import track_sequence
@@ -244,13 +244,16 @@ def test_live_tracks_a_recording_and_streams(live_run: dict, synth_seq: Path, fa
     poses = read_poses(out / "ob_in_cam")
     assert set(poses) == {r["frame"] for r in records if r["status"] != LOST}
     assert len(poses) >= 0.8 * len(seq)
-    # The same frames read from the folder and tracked from the same first mask give the same poses (the inputs
-    # differ by float rounding only; later frames may diverge as tracking amplifies it).
+    # The same frames read from the folder and tracked from the same first mask give the same poses, judged on the
+    # instrument's points seen in the first frame (the inputs differ by float rounding only, which tracking
+    # amplifies most where the data leave a pose free: the turn about the shaft, which moves those points least).
     track_sequence(seq, tmp_path, TrackerConfig.from_dict(json.loads(fast_config.read_text())), first_mask_only=True)
     folder = read_poses(tmp_path / "ob_in_cam")
+    first = seq[0]
+    points = transform(inv_T(folder[first.id]), backproject(first.depth, first.K, first.mask)[0])
     for k in seq.ids[:6]:
-        np.testing.assert_allclose(poses[k][:3, 3], folder[k][:3, 3], atol=2e-3)
-        assert rotation_angle_deg(poses[k][:3, :3] @ folder[k][:3, :3].T) < 1.0
+        apart = np.linalg.norm(transform(poses[k], points) - transform(folder[k], points), axis=1)
+        assert apart.mean() < 2e-3, (k, apart.mean())  # measured: at most 0.9 mm
     last = max(poses)
     assert live_run["transform"] is not None, "the client received no transform from surgtrack live"
     np.testing.assert_allclose(live_run["transform"].matrix, pose_to_igtl(poses[last]), atol=1e-3)

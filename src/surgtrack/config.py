@@ -68,7 +68,7 @@ class GraphConfig:
     adjacent: int = 2  # adjacent (previous) frames always in the graph
     max_assoc_points: int = 2000  # per node, strided subsample of the valid grid points used by L_2D and L_SDF
     damping: float = 1e-4  # Levenberg-Marquardt-style damping, relative to the diagonal of the normal equations
-    w_m: float = 10.0  # prior on the current pose where the data leave it free, in point residuals (not in the paper)
+    w_m: float = 1.0  # prior at the coarse pose where the data leave it free, in point residuals (not in the paper)
     prior_lever: float = 0.02  # m: the prior weighs a rotation as the displacement of a point this far away
     prior_null: float = 0.05  # the prior acts along directions whose data information is below this of the largest
 
@@ -83,6 +83,7 @@ class FailureConfig:
     relocalise_every: int = 3  # after relocalise_window lost frames, re-localisation is tried on every n-th frame
     relocalise_candidates: int = 3  # feature RANSAC poses (and FPFH seeds) that compete in re-localisation
     relocalise_prior_null: float = 0.01  # graph.prior_null for re-localisation candidates (prior at each candidate)
+    relocalise_w_m: float = 10.0  # graph.w_m for re-localisation candidates: a candidate is held where it was found
     relocalise_max_fit: float = 0.005  # m, median distance of a re-localised frame's points to the model
     relocalise_min_ncc: float = 0.2  # appearance: least intensity NCC with a keyframe that sees the frame (-1: off)
     appearance_depth_tol: float = 0.005  # m, a frame's point is seen by a keyframe when its depth agrees this well

@@ -257,7 +257,8 @@ class SurgTracker:
         pose = orthonormalize(pose)  # chained estimates would otherwise drift off SO(3)
         node = self._node(obs, feats, pose)
         if self.cfg.graph.enabled:
-            pose = node.pose = orthonormalize(self._optimise(node, edges))
+            w_m = self.cfg.failure.relocalise_w_m if self.lost else None
+            pose = node.pose = orthonormalize(self._optimise(node, edges, w_m=w_m))
             clock.lap("graph")
             if predicted and not self.lost and self.cfg.preprocess.predicted_mask_remask:
                 obs, node = self._remasked(obs, node, edges)
@@ -382,8 +383,8 @@ class SurgTracker:
         (median: parts of the instrument the model has not seen yet do not count against it): a wrong pose taken
         here would be tracked on, and its keyframes would spoil the model."""
         node = self._node(obs, feats, orthonormalize(pose))
-        node.pose = orthonormalize(self._optimise(node, list(edges), node.pose.copy(),
-                                                  self.cfg.failure.relocalise_prior_null))
+        node.pose = orthonormalize(self._optimise(node, list(edges), self.cfg.failure.relocalise_prior_null,
+                                                  self.cfg.failure.relocalise_w_m))
         motion = inv_T(last) @ node.pose
         if np.linalg.norm(motion[:3, 3]) > self._reach(obs.frame.index):
             return None
@@ -428,15 +429,14 @@ class SurgTracker:
         rotation of the instrument and displacement of its origin between consecutive frames."""
         return plausible(inv_T(self.recent[-1].pose) @ pose, self.cfg.ransac)
 
-    def _optimise(self, node: _Node, edges: list, prior: np.ndarray | None = None,
-                   prior_null: float | None = None) -> np.ndarray:
+    def _optimise(self, node: _Node, edges: list, prior_null: float | None = None,
+                   w_m: float | None = None) -> np.ndarray:
         """Posture graph over the current frame, adjacent frames and K memory frames (eqs. 7-11); as in the paper
         (eq. 8) only the current pose xi_t is optimised, the other nodes are held fixed. The motion prior holds
-        what the data leave free at ``prior`` (by default the coarse pose when no features matched), along the
-        directions ``prior_null`` (default the graph config's) selects."""
+        what the data leave free at the node's starting (coarse) pose, along the directions ``prior_null``
+        selects, with weight ``w_m`` (defaults: the graph config's)."""
         others: list[_Node | Keyframe] = [e[0] for e in edges]
-        if prior is None and not edges:
-            prior = node.pose
+        prior = node.pose.copy()
         for prev in reversed(self.recent):
             if prev not in others:
                 others.append(prev)
@@ -453,10 +453,10 @@ class SurgTracker:
         graph_edges = [FeatureEdge(0, index[id(ref)], p_cur, p_ref) for ref, p_ref, p_cur in edges]
         use_sdf = self.sdf is not None and self._field_agrees(node)
         pairs = [p for j in range(1, len(nodes)) for p in ((0, j), (j, 0))]  # the other poses are fixed
-        cfg = self.cfg.graph if prior_null is None else replace(self.cfg.graph, prior_null=prior_null)
+        cfg = replace(self.cfg.graph, prior_null=self.cfg.graph.prior_null if prior_null is None else prior_null,
+                      w_m=self.cfg.graph.w_m if w_m is None else w_m)
         poses = optimize_graph(nodes, graph_edges, cfg, self.sdf if use_sdf else None,
-                               [0] if use_sdf else [], pairs_2d=pairs,
-                               priors=[] if prior is None else [(0, prior)])
+                               [0] if use_sdf else [], pairs_2d=pairs, priors=[(0, prior)])
         return poses[0]
 
     def _field_agrees(self, node: _Node) -> bool:
