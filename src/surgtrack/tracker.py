@@ -249,21 +249,26 @@ class SurgTracker:
             return self._lose(clock)
         feats = self.extractor(obs)
         clock.lap("features")
-        coarse = self._relocalise(obs, feats) if self.lost else self._coarse_pose(obs, feats)
-        clock.lap("ransac")
-        if coarse is None:
-            return self._lose(clock)
-        pose, edges, inliers = coarse
-        pose = orthonormalize(pose)  # chained estimates would otherwise drift off SO(3)
-        node = self._node(obs, feats, pose)
-        if self.cfg.graph.enabled:
-            w_m = self.cfg.failure.relocalise_w_m if self.lost else None
-            pose = node.pose = orthonormalize(self._optimise(node, edges, w_m=w_m))
-            clock.lap("graph")
-            if predicted and not self.lost and self.cfg.preprocess.predicted_mask_remask:
-                obs, node = self._remasked(obs, node, edges)
-                pose = node.pose
-                clock.lap("remask")
+        if self.lost:  # the candidates are refined by the posture graph as they compete
+            found = self._relocalise(obs, feats)
+            clock.lap("ransac")
+            if found is None:
+                return self._lose(clock)
+            node, inliers = found
+        else:
+            coarse = self._coarse_pose(obs, feats)
+            clock.lap("ransac")
+            if coarse is None:
+                return self._lose(clock)
+            pose, edges, inliers = coarse
+            node = self._node(obs, feats, orthonormalize(pose))  # chained estimates would drift off SO(3)
+            if self.cfg.graph.enabled:
+                node.pose = orthonormalize(self._optimise(node, edges))
+                clock.lap("graph")
+                if predicted and self.cfg.preprocess.predicted_mask_remask:
+                    obs, node = self._remasked(obs, node, edges)
+                    clock.lap("remask")
+        pose = node.pose
         confidence = self._confidence(node)
         if confidence < self.cfg.failure.min_confidence:
             return self._lose(clock, confidence)
@@ -345,13 +350,15 @@ class SurgTracker:
         return cands
 
     def _best_candidate(self, obs: Observation, feats: Features, cands: list[tuple[np.ndarray, list[tuple], int]],
-                        last: np.ndarray) -> tuple[np.ndarray, list[tuple], int] | None:
+                        last: np.ndarray) -> tuple[_Node, int] | None:
         """Refine each candidate (`_refined`) and keep the one the model fits best (`_fit_error`); among equally
         good fits, the one whose appearance agrees best with the keyframes (`_appearance`), then the least motion
         from ``last``. A candidate whose appearance disagrees (NCC below ``failure.relocalise_min_ncc``: the
-        geometry fits, the markings do not, as for a round shaft turned end for end) is dropped."""
+        geometry fits, the markings do not, as for a round shaft turned end for end) is dropped. Returns the
+        winner's node, at its refined pose, and its feature inlier count; without the graph, the first candidate
+        as it came."""
         if not self.cfg.graph.enabled:
-            return cands[0] if cands else None
+            return (self._node(obs, feats, orthonormalize(cands[0][0])), cands[0][2]) if cands else None
         refined = [(c, edges, inliers) for pose, edges, inliers in cands
                    if (c := self._refined(obs, feats, pose, edges, last)) is not None]
         if not refined:
@@ -369,22 +376,21 @@ class SurgTracker:
             return None
         best = min(c.fit for c, _, _ in kept)
         tied = [k for k in kept if k[0].fit <= 1.2 * best + 5e-4]
-        c, edges, inliers = min(tied, key=lambda k: (-(k[0].looks if k[0].looks is not None else -1.0), k[0].move))
-        return c.node.pose, edges, inliers
+        c, _, inliers = min(tied, key=lambda k: (-(k[0].looks if k[0].looks is not None else -1.0), k[0].move))
+        return c.node, inliers
 
     def _refined(self, obs: Observation, feats: Features, pose: np.ndarray, edges: list[tuple],
                  last: np.ndarray) -> _Candidate | None:
         """A re-localisation candidate refined by the posture graph, its motion prior at the candidate itself along
         the directions the frame leaves free (a slide along a shaft, a turn about it stay where the candidate put
         them; a prior at ``last`` would pull them back to where the instrument was before the loss), its appearance
-        not yet scored. None when its
-        origin moved further than the physical bound allows over the frames since ``last`` (a look-alike elsewhere
-        in the image), or when its median point lies further than ``failure.relocalise_max_fit`` from the model
-        (median: parts of the instrument the model has not seen yet do not count against it): a wrong pose taken
-        here would be tracked on, and its keyframes would spoil the model."""
+        not yet scored. None when its origin moved further than the physical bound allows over the frames since
+        ``last`` (a look-alike elsewhere in the image), or when its median point lies further than
+        ``failure.relocalise_max_fit`` from the model (median: parts of the instrument the model has not seen yet do
+        not count against it): a wrong pose taken here would be tracked on, and its keyframes would spoil the
+        model."""
         node = self._node(obs, feats, orthonormalize(pose))
-        node.pose = orthonormalize(self._optimise(node, list(edges), self.cfg.failure.relocalise_prior_null,
-                                                  self.cfg.failure.relocalise_w_m))
+        node.pose = orthonormalize(self._optimise(node, list(edges), candidate=True))
         motion = inv_T(last) @ node.pose
         if np.linalg.norm(motion[:3, 3]) > self._reach(obs.frame.index):
             return None
@@ -394,7 +400,7 @@ class SurgTracker:
         move = np.linalg.norm(motion[:3, 3]) + 0.1 * np.radians(rotation_angle_deg(motion[:3, :3]))
         return _Candidate(node, self._fit_error(dist), None, move)
 
-    def _relocalise(self, obs: Observation, feats: Features) -> tuple[np.ndarray, list[tuple], int] | None:
+    def _relocalise(self, obs: Observation, feats: Features) -> tuple[_Node, int] | None:
         """Re-localisation after a loss (step 5) against the memory pool and the model; shortly after the loss the
         last pose competes too."""
         last = self.recent[-1].pose
@@ -429,12 +435,12 @@ class SurgTracker:
         rotation of the instrument and displacement of its origin between consecutive frames."""
         return plausible(inv_T(self.recent[-1].pose) @ pose, self.cfg.ransac)
 
-    def _optimise(self, node: _Node, edges: list, prior_null: float | None = None,
-                   w_m: float | None = None) -> np.ndarray:
+    def _optimise(self, node: _Node, edges: list, candidate: bool = False) -> np.ndarray:
         """Posture graph over the current frame, adjacent frames and K memory frames (eqs. 7-11); as in the paper
         (eq. 8) only the current pose xi_t is optimised, the other nodes are held fixed. The motion prior holds
-        what the data leave free at the node's starting (coarse) pose, along the directions ``prior_null``
-        selects, with weight ``w_m`` (defaults: the graph config's)."""
+        what the data leave free at the node's starting (coarse) pose, along the directions ``graph.prior_null``
+        selects, with weight ``graph.w_m``; for a re-localisation ``candidate``, ``failure.relocalise_prior_null``
+        and ``failure.relocalise_w_m``."""
         others: list[_Node | Keyframe] = [e[0] for e in edges]
         prior = node.pose.copy()
         for prev in reversed(self.recent):
@@ -453,8 +459,9 @@ class SurgTracker:
         graph_edges = [FeatureEdge(0, index[id(ref)], p_cur, p_ref) for ref, p_ref, p_cur in edges]
         use_sdf = self.sdf is not None and self._field_agrees(node)
         pairs = [p for j in range(1, len(nodes)) for p in ((0, j), (j, 0))]  # the other poses are fixed
-        cfg = replace(self.cfg.graph, prior_null=self.cfg.graph.prior_null if prior_null is None else prior_null,
-                      w_m=self.cfg.graph.w_m if w_m is None else w_m)
+        cfg = self.cfg.graph
+        if candidate:
+            cfg = replace(cfg, prior_null=self.cfg.failure.relocalise_prior_null, w_m=self.cfg.failure.relocalise_w_m)
         poses = optimize_graph(nodes, graph_edges, cfg, self.sdf if use_sdf else None,
                                [0] if use_sdf else [], pairs_2d=pairs, priors=[(0, prior)])
         return poses[0]
