@@ -359,7 +359,7 @@ class SurgTracker:
         as it came."""
         if not self.cfg.graph.enabled:
             return (self._node(obs, feats, orthonormalize(cands[0][0])), cands[0][2]) if cands else None
-        refined = [(c, edges, inliers) for pose, edges, inliers in cands
+        refined = [(c, inliers) for pose, edges, inliers in cands
                    if (c := self._refined(obs, feats, pose, edges, last)) is not None]
         if not refined:
             return None
@@ -368,15 +368,15 @@ class SurgTracker:
         points = xyz[xyz[..., 2] > 0]
         values, _ = sample(intensity(obs.frame.rgb), project(points, obs.K)[0])
         kept = []
-        for c, edges, inliers in refined:
+        for c, inliers in refined:
             c = c._replace(looks=self._appearance(c.node.pose, points, values))
             if c.looks is None or c.looks >= self.cfg.failure.relocalise_min_ncc:
-                kept.append((c, edges, inliers))
+                kept.append((c, inliers))
         if not kept:
             return None
-        best = min(c.fit for c, _, _ in kept)
+        best = min(c.fit for c, _ in kept)
         tied = [k for k in kept if k[0].fit <= 1.2 * best + 5e-4]
-        c, _, inliers = min(tied, key=lambda k: (-(k[0].looks if k[0].looks is not None else -1.0), k[0].move))
+        c, inliers = min(tied, key=lambda k: (-(k[0].looks if k[0].looks is not None else -1.0), k[0].move))
         return c.node, inliers
 
     def _refined(self, obs: Observation, feats: Features, pose: np.ndarray, edges: list[tuple],
