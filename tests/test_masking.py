@@ -72,6 +72,25 @@ def later_frame(parts: list[tuple[tuple[slice, slice], float]]) -> tuple[np.ndar
     return rgb, depth, masks
 
 
+def test_predicted_mask_leaves_out_a_finger_on_the_instrument_but_not_an_instrument_that_came_nearer():
+    rgb, depth, mask = scene()
+    points = bar_points(mask, depth)
+    pose = np.eye(4)
+    # next frame: a finger lies across the bar, 6 mm in front of it
+    depth2 = depth.copy()
+    finger = np.zeros_like(mask)
+    finger[44:76, 70:78] = True
+    depth2[finger] = 0.294
+    symmetric = predict_mask(points, pose, K, depth2, 4, 0.01)
+    tight = predict_mask(points, pose, K, depth2, 4, 0.01, front_tol=0.004)
+    assert (symmetric & finger).sum() > 0.9 * (finger & mask).sum()  # 1 cm either way takes the finger in
+    assert not (tight & finger).any()
+    assert (tight & mask & ~finger).sum() == (mask & ~finger).sum()  # the bar beside it is all kept
+    # the whole bar 6 mm nearer than predicted (it moved): the tight bound would lose it, so it is not applied
+    nearer = np.where(mask, np.float32(0.294), depth)
+    assert predict_mask(points, pose, K, nearer, 4, 0.01, front_tol=0.004)[mask].all()
+
+
 def test_search_mask_finds_the_nearest_instrument_coloured_region_of_plausible_size():
     rgb, depth, mask = scene()
     colours = ColourModel()

@@ -15,6 +15,7 @@ class PreprocessConfig:
     mask_erosion: int = 1  # pixels eroded from the instrument mask before lifting points
     predicted_mask_margin: int = 4  # pixels a predicted mask (no mask given) extends beyond the rendered model
     predicted_mask_tol: float = 0.01  # m a predicted mask's depth may lie outside the model's depth nearby
+    predicted_mask_front_tol: float = 0.004  # m in front of the model, unless that loses a fifth of the mask
     predicted_mask_colour: float = 0.25  # min colour posterior of pixels beyond the rendered model (0: off)
     predicted_mask_remask: bool = True  # mask a frame again at its tracked pose and optimise the graph once more
     search_mask_colour: float = 0.6  # lost without a given mask: pixels whose colour is instrument with this posterior

@@ -35,14 +35,16 @@ def render_depth(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, shape:
 
 def predict_mask(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, depth: np.ndarray,
                  margin: int, tol: float, rgb: np.ndarray | None = None, colour: ColourModel | None = None,
-                 min_posterior: float = 0.0) -> np.ndarray:
+                 min_posterior: float = 0.0, front_tol: float | None = None, keep: float = 0.8) -> np.ndarray:
     """Mask of the instrument at a predicted pose: observed depth within ``tol`` of the model's depth nearby.
 
     The model depth is spread over ``margin`` pixels to absorb the prediction's error; observed depth more than
-    ``tol`` in front of the model (an occluder) or behind it (background) is left out. With a ``colour`` model
-    (and the frame's ``rgb``), the pixels beyond the rendered model's own silhouette must also have a colour
-    posterior of at least ``min_posterior``, so the mask grows into neither a hand nor tissue at the instrument's
-    depth; only those pixels are looked up."""
+    ``tol`` in front of the model (an occluder) or behind it (background) is left out. With ``front_tol`` the mask
+    stops that much in front of the model (a finger lying on the shaft is nearer by little more than its own
+    thickness) unless that would lose more than 1 - ``keep`` of it (the instrument itself came nearer since the
+    pose was predicted). With a ``colour`` model (and the frame's ``rgb``), the pixels beyond the rendered model's
+    own silhouette must also have a colour posterior of at least ``min_posterior``, so the mask grows into neither
+    a hand nor tissue at the instrument's depth; only those pixels are looked up."""
     model = render_depth(points_obj, pose, K, depth.shape)
     if not (model > 0).any():
         return np.zeros(depth.shape, bool)
@@ -50,6 +52,10 @@ def predict_mask(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, depth:
     zmin = -cv2.dilate(-np.where(model > 0, model, np.float32(1e3)), kernel)
     zmax = cv2.dilate(model, kernel)
     mask = (zmax > 0) & (depth > 0) & (depth > zmin - tol) & (depth < zmax + tol)
+    if front_tol is not None:
+        tight = mask & (depth > zmin - front_tol)
+        if tight.sum() >= keep * mask.sum():
+            mask = tight
     if colour is not None and rgb is not None:
         # the splat's own rim is not the model's silhouette: erode it away
         core = cv2.erode((model > 0).astype(np.uint8), np.ones((2 * SPLAT + 1,) * 2, np.uint8)).astype(bool)

@@ -574,7 +574,8 @@ class SurgTracker:
                                self._reach(frame.index), pre.search_mask_colour,
                                (self.cfg.failure.min_pixels, 3 * seen))
         return predict_mask(self.model_points, pose, frame.K, frame.depth, pre.predicted_mask_margin,
-                            pre.predicted_mask_tol, frame.rgb, colour, pre.predicted_mask_colour)
+                            pre.predicted_mask_tol, frame.rgb, colour, pre.predicted_mask_colour,
+                            pre.predicted_mask_front_tol)
 
     def _lose(self, clock: _Clock, confidence: float = 0.0) -> TrackResult:
         self.lost = True
