@@ -119,3 +119,28 @@ def test_search_mask_cuts_a_merged_region_where_the_depth_jumps():
     found = search_mask(colours.posterior(rgb2), depth2, K, last, 0.5, 0.6, pixels)
     assert found.sum() > 0.9 * (bar & (depth2 > 0)).sum() and not (found & hand).any()
     assert not search_mask(colours.posterior(rgb2), depth2, K, last, 0.5, 0.6, pixels, depth_step=0.1).any()
+
+
+def test_predicted_mask_leaves_out_a_glove_inside_the_outline_whose_colour_the_first_frame_saw_further_away():
+    """A gloved finger lies on the bar, within the depth window, inside the rendered outline. The first frame showed
+    the glove 60 pixels from the bar, beyond a narrow ring: only the wider surroundings learn its colour, and only
+    the gate inside the outline cuts it."""
+    rgb, depth, mask = scene()
+    seen = rgb.copy()
+    seen[5:15, 30:130] = SKIN  # the first frame: the glove well above the bar
+    rgb2, depth2 = rgb.copy(), depth.copy()
+    finger = np.zeros_like(mask)
+    finger[50:70, 70:78] = True  # next frame: a finger on the bar, 2 mm in front of it
+    rgb2[finger], depth2[finger] = SKIN, 0.298
+    points = bar_points(mask, depth)
+    pose = np.eye(4)
+    for ring, cut in (((6, 30), False), ((6, 120), True)):
+        colours = ColourModel(ring=ring)
+        colours.learn(seen, mask)
+        gated = predict_mask(points, pose, K, depth2, 4, 0.01, rgb2, colours, 0.1, 0.004, inside_posterior=0.1)
+        assert (gated & mask & ~finger).sum() == (mask & ~finger).sum()  # the bar beside it is all kept
+        assert (gated & finger).any() != cut
+    colours = ColourModel(ring=(6, 120))
+    colours.learn(seen, mask)
+    ungated = predict_mask(points, pose, K, depth2, 4, 0.01, rgb2, colours, 0.1, 0.004)
+    assert (ungated & finger).sum() > 0.8 * finger.sum()  # without the gate inside, only the rim is cut

@@ -16,7 +16,10 @@ class PreprocessConfig:
     predicted_mask_margin: int = 4  # pixels a predicted mask (no mask given) extends beyond the rendered model
     predicted_mask_tol: float = 0.01  # m a predicted mask's depth may lie outside the model's depth nearby
     predicted_mask_front_tol: float = 0.004  # m in front of the model, unless that loses a fifth of the mask
-    predicted_mask_colour: float = 0.25  # min colour posterior of pixels beyond the rendered model (0: off)
+    predicted_mask_colour: float = 0.1  # min colour posterior of pixels beyond the rendered model (0: off)
+    predicted_mask_colour_inside: float = 0.1  # min colour posterior of pixels inside the rendered model (0: off)
+    colour_bins: int = 32  # colour model: histogram bins per RGB channel
+    colour_ring: int = 120  # colour model: outer radius (pixels) of the first frame's surroundings around the mask
     predicted_mask_remask: bool = True  # mask a frame again at its tracked pose and optimise the graph once more
     search_mask_colour: float = 0.6  # lost without a given mask: pixels whose colour is instrument with this posterior
     normal_step: int = 1  # normals from neighbours this many pixels away (larger: smoother, fewer thin-part pixels)

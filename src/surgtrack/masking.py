@@ -35,7 +35,8 @@ def render_depth(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, shape:
 
 def predict_mask(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, depth: np.ndarray,
                  margin: int, tol: float, rgb: np.ndarray | None = None, colour: ColourModel | None = None,
-                 min_posterior: float = 0.0, front_tol: float | None = None, keep: float = 0.8) -> np.ndarray:
+                 min_posterior: float = 0.0, front_tol: float | None = None, keep: float = 0.8,
+                 inside_posterior: float = 0.0) -> np.ndarray:
     """Mask of the instrument at a predicted pose: observed depth within ``tol`` of the model's depth nearby.
 
     The model depth is spread over ``margin`` pixels to absorb the prediction's error; observed depth more than
@@ -44,7 +45,8 @@ def predict_mask(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, depth:
     thickness) unless that would lose more than 1 - ``keep`` of it (the instrument itself came nearer since the
     pose was predicted). With a ``colour`` model (and the frame's ``rgb``), the pixels beyond the rendered model's
     own silhouette must also have a colour posterior of at least ``min_posterior``, so the mask grows into neither
-    a hand nor tissue at the instrument's depth; only those pixels are looked up."""
+    a hand nor tissue at the instrument's depth, and those inside it at least ``inside_posterior`` (0: not looked
+    up), so fingers touching the instrument, within the depth window, stay out too."""
     model = render_depth(points_obj, pose, K, depth.shape)
     if not (model > 0).any():
         return np.zeros(depth.shape, bool)
@@ -61,6 +63,9 @@ def predict_mask(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, depth:
         core = cv2.erode((model > 0).astype(np.uint8), np.ones((2 * SPLAT + 1,) * 2, np.uint8)).astype(bool)
         band = mask & ~core
         mask[band] = colour.posterior(rgb[band]) >= min_posterior
+        if inside_posterior > 0:
+            inside = mask & core
+            mask[inside] = colour.posterior(rgb[inside]) >= inside_posterior
     return mask
 
 
@@ -70,10 +75,12 @@ class ColourModel:
     Two smoothed histograms over quantised RGB, both from the first frame: the instrument's from its given mask,
     the surroundings' from a ring ``ring`` (inner, outer radius in pixels) around it, where the hands holding the
     instrument and the tissue beside it are. Bayes' rule with equal priors gives each pixel's posterior of being
-    instrument. (Refreshing the surroundings from later frames was measured to hurt: the ring then takes in parts
+    instrument. The ring reaches far (120 px) because the hand that later touches the instrument is often further
+    away in the first frame, and the bins are fine (32 a channel) because a pale glove and bright steel share
+    coarser ones. (Refreshing the surroundings from later frames was measured to hurt: the ring then takes in parts
     of the instrument the model has not seen yet.)"""
 
-    def __init__(self, bins: int = 16, ring: tuple[int, int] = (6, 30)):
+    def __init__(self, bins: int = 32, ring: tuple[int, int] = (6, 120)):
         self.bins, self.ring = bins, ring
         self.instrument: np.ndarray | None = None
         self.surroundings: np.ndarray | None = None

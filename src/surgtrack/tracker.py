@@ -159,7 +159,7 @@ class SurgTracker:
         self._field: InstrumentSDF | None = None  # the field refitted in line when there is no background fitter
         self.model_points: np.ndarray | None = None  # the keyframes' points in the object frame
         self._model_tree: cKDTree | None = None
-        self.colour = ColourModel()
+        self.colour = ColourModel(self.cfg.preprocess.colour_bins, (6, self.cfg.preprocess.colour_ring))
         self.model = model
         if model is not None:
             for kf in model.keyframes:
@@ -575,7 +575,7 @@ class SurgTracker:
                                (self.cfg.failure.min_pixels, 3 * seen))
         return predict_mask(self.model_points, pose, frame.K, frame.depth, pre.predicted_mask_margin,
                             pre.predicted_mask_tol, frame.rgb, colour, pre.predicted_mask_colour,
-                            pre.predicted_mask_front_tol)
+                            pre.predicted_mask_front_tol, inside_posterior=pre.predicted_mask_colour_inside)
 
     def _lose(self, clock: _Clock, confidence: float = 0.0) -> TrackResult:
         self.lost = True
