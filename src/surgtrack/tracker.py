@@ -567,7 +567,7 @@ class SurgTracker:
         if self.model_points is None:
             return np.zeros(frame.depth.shape, bool)
         pre = self.cfg.preprocess
-        colour = self.colour if pre.predicted_mask_colour > 0 else None
+        colour = self.colour if max(pre.predicted_mask_colour, pre.predicted_mask_colour_inside) > 0 else None
         if self.lost and colour is not None:  # look for the instrument's colour where it can have moved
             seen = max(int(self.pool.keyframes[-1].mask.sum()), self.cfg.failure.min_pixels)
             return search_mask(colour.posterior(frame.rgb), frame.depth, frame.K, self.recent[-1].pose[:3, 3],
