@@ -134,13 +134,13 @@ def test_predicted_mask_leaves_out_a_glove_inside_the_outline_whose_colour_the_f
     rgb2[finger], depth2[finger] = SKIN, 0.298
     points = bar_points(mask, depth)
     pose = np.eye(4)
-    for ring, cut in (((6, 30), False), ((6, 120), True)):
+    for ring, cut in ((30, False), (120, True)):
         colours = ColourModel(ring=ring)
         colours.learn(seen, mask)
         gated = predict_mask(points, pose, K, depth2, 4, 0.01, rgb2, colours, 0.1, 0.004, inside_posterior=0.1)
         assert (gated & mask & ~finger).sum() == (mask & ~finger).sum()  # the bar beside it is all kept
         assert (gated & finger).any() != cut
-    colours = ColourModel(ring=(6, 120))
+    colours = ColourModel(ring=120)
     colours.learn(seen, mask)
     ungated = predict_mask(points, pose, K, depth2, 4, 0.01, rgb2, colours, 0.1, 0.004)
     assert (ungated & finger).sum() > 0.8 * finger.sum()  # without the gate inside, only the rim is cut

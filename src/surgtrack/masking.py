@@ -61,26 +61,27 @@ def predict_mask(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, depth:
     if colour is not None and rgb is not None:
         # the splat's own rim is not the model's silhouette: erode it away
         core = cv2.erode((model > 0).astype(np.uint8), np.ones((2 * SPLAT + 1,) * 2, np.uint8)).astype(bool)
-        band = mask & ~core
-        mask[band] = colour.posterior(rgb[band]) >= min_posterior
-        if inside_posterior > 0:
-            inside = mask & core
-            mask[inside] = colour.posterior(rgb[inside]) >= inside_posterior
+        looked = mask & ~core if inside_posterior <= 0 else mask.copy()
+        least = np.where(core[looked], inside_posterior, min_posterior)
+        mask[looked] = colour.posterior(rgb[looked]) >= least
     return mask
+
+
+RING_INNER = 6  # px: the colour model's surroundings start this far from the first mask (its edge blurs both)
 
 
 class ColourModel:
     """Instrument vs. surroundings colour likelihoods for masks predicted without a given mask.
 
     Two smoothed histograms over quantised RGB, both from the first frame: the instrument's from its given mask,
-    the surroundings' from a ring ``ring`` (inner, outer radius in pixels) around it, where the hands holding the
+    the surroundings' from a ring from `RING_INNER` to ``ring`` pixels around it, where the hands holding the
     instrument and the tissue beside it are. Bayes' rule with equal priors gives each pixel's posterior of being
     instrument. The ring reaches far (120 px) because the hand that later touches the instrument is often further
     away in the first frame, and the bins are fine (32 a channel) because a pale glove and bright steel share
     coarser ones. (Refreshing the surroundings from later frames was measured to hurt: the ring then takes in parts
     of the instrument the model has not seen yet.)"""
 
-    def __init__(self, bins: int = 32, ring: tuple[int, int] = (6, 120)):
+    def __init__(self, bins: int = 32, ring: int = 120):
         self.bins, self.ring = bins, ring
         self.instrument: np.ndarray | None = None
         self.surroundings: np.ndarray | None = None
@@ -98,7 +99,7 @@ class ColourModel:
         def grow(r: int) -> np.ndarray:
             return cv2.dilate(mask.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2))
 
-        return grow(self.ring[1]).astype(bool) & ~grow(self.ring[0]).astype(bool)
+        return grow(self.ring).astype(bool) & ~grow(RING_INNER).astype(bool)
 
     def learn(self, rgb: np.ndarray, mask: np.ndarray) -> None:
         """Start from a given instrument mask: its pixels are instrument, a ring around it surroundings."""

@@ -159,7 +159,7 @@ class SurgTracker:
         self._field: InstrumentSDF | None = None  # the field refitted in line when there is no background fitter
         self.model_points: np.ndarray | None = None  # the keyframes' points in the object frame
         self._model_tree: cKDTree | None = None
-        self.colour = ColourModel(self.cfg.preprocess.colour_bins, (6, self.cfg.preprocess.colour_ring))
+        self.colour = ColourModel(self.cfg.preprocess.colour_bins, self.cfg.preprocess.colour_ring)
         self.model = model
         if model is not None:
             for kf in model.keyframes:
