@@ -11,7 +11,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from surgtrack.config import TrackerConfig
-from surgtrack.geometry import inv_T, make_T, rotation_angle_deg
+from surgtrack.geometry import inv_T, make_T, project, rotation_angle_deg
 from surgtrack.io import open_sequence
 from surgtrack.metrics import auc, evaluate
 from surgtrack.pipeline import track_sequence
@@ -154,3 +154,41 @@ def test_a_long_loss_is_relocalised_on_every_few_frames_only(synth_seq, monkeypa
     while not tracker._relocalisation_due():
         assert tracker.track(frame, frame.mask).status == LOST
     assert tracker.track(frame, frame.mask).status == RELOCALISED
+
+
+
+def test_without_masks_a_nearer_look_alike_does_not_take_the_relocalisation(synth_seq):
+    """Lost with no mask given, the search tries the colour regions nearest the last position and takes the pose
+    whose model silhouette agrees best with its region. Here the instrument has moved 40 px across the image, and a
+    piece of it (a fingertip-sized region of its colour) lies where it was: nearest, and a part of the model fits
+    it. Trying only the nearest region, the frame stays lost (no pose on the piece is taken); trying the nearest
+    four, the instrument is found where it moved."""
+    seq = open_sequence(synth_seq)
+    cfg = TrackerConfig()
+    cfg.sdf.enabled = False
+    cfg.failure.relocalise_window = 0
+    cfg.failure.relocalise_every = 1
+    frame = seq[4]
+    v, u = np.nonzero(frame.mask)
+    shaft = np.linalg.eigh(np.cov(np.stack([u, v])))[1][:, -1]  # the shaft's direction in the image
+    du, dv = np.round(40 * np.array([-shaft[1], shaft[0]])).astype(int)  # across it
+    moved = replace(frame, rgb=np.roll(frame.rgb, (dv, du), axis=(0, 1)),
+                    depth=np.roll(frame.depth, (dv, du), axis=(0, 1)))
+    tracker, _ = _lost_after(seq, cfg)
+    u0, v0 = project(tracker.recent[-1].pose[:3, 3][None], frame.K)[0][0]
+    v, u = np.mgrid[: frame.depth.shape[0], : frame.depth.shape[1]]
+    piece = frame.mask & (np.abs(u - u0) < 20) & (np.abs(v - v0) < 20) & (frame.depth > 0)
+    assert cfg.failure.min_pixels <= piece.sum() < 0.3 * frame.mask.sum()
+    moved.rgb[piece], moved.depth[piece] = frame.rgb[piece], frame.depth[piece]
+
+    def relocalised(regions: int) -> np.ndarray | None:
+        cfg.failure.search_regions = regions
+        tracker, _ = _lost_after(seq, cfg)
+        result = tracker.track(moved, None)
+        return result.pose if result.status == RELOCALISED else None
+
+    assert relocalised(1) is None
+    pose = relocalised(4)
+    assert pose is not None
+    u1, v1 = project(pose[:3, 3][None], frame.K)[0][0]
+    assert np.hypot(u1 - (u0 + du), v1 - (v0 + dv)) < 6

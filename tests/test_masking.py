@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from surgtrack.masking import ColourModel, predict_mask, search_mask
+from surgtrack.masking import ColourModel, predict_mask, search_regions, silhouette_iou
 
 K = np.array([[200.0, 0, 80], [0, 200.0, 60], [0, 0, 1]])
 GREY, GREEN, SKIN, BLUE = (150, 150, 155), (40, 140, 60), (220, 170, 140), (30, 40, 200)
@@ -91,7 +91,7 @@ def test_predicted_mask_leaves_out_a_finger_on_the_instrument_but_not_an_instrum
     assert predict_mask(points, pose, K, nearer, 4, 0.01, front_tol=0.004)[mask].all()
 
 
-def test_search_mask_finds_the_nearest_instrument_coloured_region_of_plausible_size():
+def test_search_finds_the_nearest_instrument_coloured_regions_of_plausible_size():
     rgb, depth, mask = scene()
     colours = ColourModel()
     colours.learn(rgb, mask)
@@ -99,12 +99,14 @@ def test_search_mask_finds_the_nearest_instrument_coloured_region_of_plausible_s
     rgb2, depth2, (moved, tray) = later_frame([(np.s_[10:30, 10:110], 0.32), (np.s_[70:120, 40:160], 0.45)])
     rgb2[5, 150] = GREY
     last = np.array([0.0, 0.0, 0.3])  # last seen at the image centre, 0.3 m
-    found = search_mask(colours.posterior(rgb2), depth2, K, last, 0.5, 0.6, (40, 3 * int(mask.sum())))
-    assert (found == moved).all()  # the tray is too big to be the instrument
-    assert not search_mask(colours.posterior(rgb2), depth2, K, last, 0.05, 0.6, (40, 6000)).any()  # out of reach
+    found = search_regions(colours.posterior(rgb2), depth2, K, last, 0.5, 0.6, (40, 2 * int(mask.sum())), n=3)
+    assert len(found) == 1 and (found[0] == moved).all()  # the tray is too big to be the instrument
+    both = search_regions(colours.posterior(rgb2), depth2, K, last, 0.5, 0.6, (40, 6000), n=3)
+    assert len(both) == 2 and (both[0] == moved).all() and (both[1] == tray).all()  # nearest first
+    assert not search_regions(colours.posterior(rgb2), depth2, K, last, 0.05, 0.6, (40, 6000))  # out of reach
 
 
-def test_search_mask_cuts_a_merged_region_where_the_depth_jumps():
+def test_search_cuts_a_merged_region_where_the_depth_jumps():
     """The instrument's colour region runs into a nearer hand of a similar colour: too big as a whole, the region
     is cut at the depth step and at missing depth between them, and the instrument's part is found."""
     rgb, depth, mask = scene()
@@ -116,9 +118,9 @@ def test_search_mask_cuts_a_merged_region_where_the_depth_jumps():
     depth2[30:40, 110:120] = 0.0  # and at the hand's edge
     last = np.array([0.0, 0.0, 0.3])
     pixels = (40, 3 * int(mask.sum()))
-    found = search_mask(colours.posterior(rgb2), depth2, K, last, 0.5, 0.6, pixels)
+    (found,) = search_regions(colours.posterior(rgb2), depth2, K, last, 0.5, 0.6, pixels)
     assert found.sum() > 0.9 * (bar & (depth2 > 0)).sum() and not (found & hand).any()
-    assert not search_mask(colours.posterior(rgb2), depth2, K, last, 0.5, 0.6, pixels, depth_step=0.1).any()
+    assert not search_regions(colours.posterior(rgb2), depth2, K, last, 0.5, 0.6, pixels, depth_step=0.1)
 
 
 def test_predicted_mask_leaves_out_a_glove_inside_the_outline_whose_colour_the_first_frame_saw_further_away():
@@ -144,3 +146,18 @@ def test_predicted_mask_leaves_out_a_glove_inside_the_outline_whose_colour_the_f
     colours.learn(seen, mask)
     ungated = predict_mask(points, pose, K, depth2, 4, 0.01, rgb2, colours, 0.1, 0.004)
     assert (ungated & finger).sum() > 0.8 * finger.sum()  # without the gate inside, only the rim is cut
+
+
+def test_silhouette_agreement_tells_the_whole_instrument_from_a_piece_of_it():
+    """The model's silhouette at a pose agrees with the bar's own region, not with a fingertip-sized piece of it
+    that one part of the model would fit just as well."""
+    _, depth, mask = scene()
+    points = bar_points(mask, depth)
+    whole = silhouette_iou(points, np.eye(4), K, mask)
+    piece = mask.copy()
+    piece[:, 50:] = False  # 20 of the bar's 100 columns
+    assert whole > 0.8
+    assert silhouette_iou(points, np.eye(4), K, piece) < 0.25
+    shifted = np.eye(4)
+    shifted[1, 3] = 0.05  # the pose 5 cm off across the bar: its silhouette lands beside it
+    assert silhouette_iou(points, shifted, K, mask) < 0.1

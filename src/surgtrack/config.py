@@ -89,6 +89,8 @@ class FailureConfig:
     relocalise_prior_null: float = 0.01  # graph.prior_null for re-localisation candidates (prior at each candidate)
     relocalise_w_m: float = 10.0  # graph.w_m for re-localisation candidates: a candidate is held where it was found
     relocalise_max_fit: float = 0.005  # m, median distance of a re-localised frame's points to the model
+    search_regions: int = 4  # no mask while lost: colour regions nearest the last position tried for re-localisation
+    relocalise_min_iou: float = 0.12  # no mask while lost: least IoU of the model's silhouette with its region
     relocalise_min_ncc: float = 0.2  # appearance: least intensity NCC with a keyframe that sees the frame (-1: off)
     appearance_depth_tol: float = 0.005  # m, a frame's point is seen by a keyframe when its depth agrees this well
     appearance_min_points: int = 100  # fewer points seen by every keyframe: no appearance check

@@ -130,36 +130,45 @@ def _depth_edges(depth: np.ndarray, step: float) -> np.ndarray:
     return edge
 
 
-def search_mask(posterior: np.ndarray, depth: np.ndarray, K: np.ndarray, centre: np.ndarray, radius: float,
-                min_posterior: float, pixels: tuple[int, int], depth_step: float = 0.01) -> np.ndarray:
-    """Where the instrument may be when its pose is lost: the connected region of pixels whose colour is
+def search_regions(posterior: np.ndarray, depth: np.ndarray, K: np.ndarray, centre: np.ndarray, radius: float,
+                   min_posterior: float, pixels: tuple[int, int], n: int = 1,
+                   depth_step: float = 0.01) -> list[np.ndarray]:
+    """Where the instrument may be when its pose is lost: the connected regions of pixels whose colour is
     instrument with at least ``min_posterior``, of a plausible pixel count (``pixels``: min, max, counting pixels
     with valid depth), whose 3D centroid lies within ``radius`` of ``centre`` (camera frame: where the instrument
-    was last seen) and nearest to it; its pixels with valid depth, or an empty mask when there is none.
+    was last seen); the ``n`` nearest to it, nearest first, each as its pixels with valid depth.
     Connectivity is by colour alone, so depth dropouts along a thin shaft do not break it apart; when no region
     qualifies (the instrument's region merged with a hand or drape of a similar colour), the regions are cut
     again, 4-connected, where the depth is missing or jumps by more than ``depth_step`` (the far side of the
     jump is cut off, so a diagonal contact does not join them)."""
     colour = posterior >= min_posterior
-    found = _nearest_region(colour, depth, K, centre, radius, pixels)
-    if not found.any():
+    found = _nearest_regions(colour, depth, K, centre, radius, pixels, n)
+    if not found:
         cut = colour & (depth > 0) & ~_depth_edges(depth, depth_step)
-        found = _nearest_region(cut, depth, K, centre, radius, pixels, connectivity=4)
+        found = _nearest_regions(cut, depth, K, centre, radius, pixels, n, connectivity=4)
     return found
 
 
-def _nearest_region(candidates: np.ndarray, depth: np.ndarray, K: np.ndarray, centre: np.ndarray, radius: float,
-                    pixels: tuple[int, int], connectivity: int = 8) -> np.ndarray:
-    """`search_mask`'s choice among the connected regions of ``candidates``."""
-    n, labels = cv2.connectedComponents(candidates.astype(np.uint8), connectivity=connectivity)
+def _nearest_regions(candidates: np.ndarray, depth: np.ndarray, K: np.ndarray, centre: np.ndarray, radius: float,
+                     pixels: tuple[int, int], n: int, connectivity: int = 8) -> list[np.ndarray]:
+    """`search_regions`' choice among the connected regions of ``candidates``."""
+    count, labels = cv2.connectedComponents(candidates.astype(np.uint8), connectivity=connectivity)
     labels[depth <= 0] = 0
-    area = np.bincount(labels.ravel(), minlength=n)
+    area = np.bincount(labels.ravel(), minlength=count)
     xyz = depth_to_xyz(depth, K)
-    best, nearest = 0, radius
+    near = []
     for label in np.flatnonzero((area >= pixels[0]) & (area <= pixels[1])):
         if label == 0:
             continue
         distance = float(np.linalg.norm(np.median(xyz[labels == label], axis=0) - centre))
-        if distance <= nearest:
-            best, nearest = label, distance
-    return labels == best if best else np.zeros(depth.shape, bool)
+        if distance <= radius:
+            near.append((distance, label))
+    return [labels == label for _, label in sorted(near)[:n]]
+
+
+def silhouette_iou(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, mask: np.ndarray) -> float:
+    """Intersection over union of the model's silhouette at ``pose`` (`render_depth`) and ``mask``: low when a
+    pose fits the frame's points to one part of the model and the rest of it would show where nothing was seen."""
+    outline = render_depth(points_obj, pose, K, mask.shape) > 0
+    union = int((outline | mask).sum())
+    return float((outline & mask).sum()) / union if union else 0.0

@@ -34,7 +34,7 @@ from .geometry import (
 )
 from .global_registration import global_register, icp_from
 from .io import Frame
-from .masking import ColourModel, predict_mask, search_mask
+from .masking import ColourModel, predict_mask, search_regions, silhouette_iou
 from .memory_pool import Keyframe, MemoryPool
 from .model import InstrumentModel
 from .posture_graph import FeatureEdge, GraphNode, optimize_graph
@@ -240,34 +240,14 @@ class SurgTracker:
         if self.lost and not self._relocalisation_due():
             return self._lose(clock)
         self._update_sdf()
-        predicted = mask is None
-        if predicted:
-            mask = self._predicted_mask(frame, self.recent[-1].pose)
-        obs = preprocess(frame, mask, self.cfg.preprocess)
-        clock.lap("preprocess")
-        if obs.n_valid < self.cfg.failure.min_pixels:
-            return self._lose(clock)
-        feats = self.extractor(obs)
-        clock.lap("features")
-        if self.lost:  # the candidates are refined by the posture graph as they compete
-            found = self._relocalise(obs, feats)
-            clock.lap("ransac")
-            if found is None:
-                return self._lose(clock)
-            node, inliers = found
+        colour = self._colour()
+        if mask is None and self.lost and colour is not None:
+            found = self._search(frame, colour, clock)
         else:
-            coarse = self._coarse_pose(obs, feats)
-            clock.lap("ransac")
-            if coarse is None:
-                return self._lose(clock)
-            pose, edges, inliers = coarse
-            node = self._node(obs, feats, orthonormalize(pose))  # chained estimates would drift off SO(3)
-            if self.cfg.graph.enabled:
-                node.pose = orthonormalize(self._optimise(node, edges))
-                clock.lap("graph")
-                if predicted and self.cfg.preprocess.predicted_mask_remask:
-                    obs, node = self._remasked(obs, node, edges)
-                    clock.lap("remask")
+            found = self._located(frame, mask, clock)
+        if found is None:
+            return self._lose(clock)
+        obs, node, inliers = found
         pose = node.pose
         confidence = self._confidence(node)
         if confidence < self.cfg.failure.min_confidence:
@@ -282,6 +262,76 @@ class SurgTracker:
         return TrackResult(pose, status, confidence, clock.laps, inliers)
 
     # -------------------------------------------------------------------------------------------------- stages
+
+    def _located(self, frame: Frame, mask: np.ndarray | None,
+                 clock: _Clock) -> tuple[Observation, _Node, int] | None:
+        """The frame's observation, its node at the tracked pose and the feature inlier count: coarse pose (eq. 5)
+        and posture graph (eqs. 7-11) while tracking, re-localisation (step 5) while lost; None when lost."""
+        predicted = mask is None
+        if mask is None:
+            mask = self._predicted_mask(frame, self.recent[-1].pose)
+        obs = preprocess(frame, mask, self.cfg.preprocess)
+        clock.lap("preprocess")
+        if obs.n_valid < self.cfg.failure.min_pixels:
+            return None
+        feats = self.extractor(obs)
+        clock.lap("features")
+        if self.lost:  # the candidates are refined by the posture graph as they compete
+            found = self._relocalise(obs, feats)
+            clock.lap("ransac")
+            if found is None:
+                return None
+            node, inliers = found
+        else:
+            coarse = self._coarse_pose(obs, feats)
+            clock.lap("ransac")
+            if coarse is None:
+                return None
+            pose, edges, inliers = coarse
+            node = self._node(obs, feats, orthonormalize(pose))  # chained estimates would drift off SO(3)
+            if self.cfg.graph.enabled:
+                node.pose = orthonormalize(self._optimise(node, edges))
+                clock.lap("graph")
+                if predicted and self.cfg.preprocess.predicted_mask_remask:
+                    obs, node = self._remasked(obs, node, edges)
+                    clock.lap("remask")
+        return obs, node, inliers
+
+    def _search(self, frame: Frame, colour: ColourModel, clock: _Clock) -> tuple[Observation, _Node, int] | None:
+        """Re-localisation without a mask (step 5): against each of the ``failure.search_regions`` colour regions
+        nearest the last position (`masking.search_regions`); the winner is the pose whose model silhouette agrees
+        best with its region (`masking.silhouette_iou`), if by at least ``failure.relocalise_min_iou``. The model's
+        fit alone prefers a fingertip-sized region, which some part of the model always fits."""
+        f, pre = self.cfg.failure, self.cfg.preprocess
+        seen = max(max(int(k.mask.sum()) for k in self.pool.keyframes), f.min_pixels)
+        regions = search_regions(colour.posterior(frame.rgb), frame.depth, frame.K,
+                                 self.recent[-1].pose[:3, 3], self._reach(frame.index), pre.search_mask_colour,
+                                 (f.min_pixels, 3 * seen), f.search_regions)
+        clock.lap("preprocess")
+        best, best_iou = None, f.relocalise_min_iou
+        for region in regions:
+            obs = preprocess(frame, region, pre)
+            if obs.n_valid < f.min_pixels:
+                continue
+            feats = self.extractor(obs)
+            found = self._relocalise(obs, feats)
+            if found is None:
+                continue
+            iou = silhouette_iou(self.model_points, found[0].pose, frame.K, region)
+            if iou >= best_iou:
+                best, best_iou = (obs, *found), iou
+        clock.lap("ransac")
+        if best is not None and self.cfg.preprocess.predicted_mask_remask:
+            # the region may have merged with a hand of the instrument's colour: mask again at the found pose
+            obs, node = self._remasked(best[0], best[1], [])
+            best = (obs, node, best[2])
+            clock.lap("remask")
+        return best
+
+    def _colour(self) -> ColourModel | None:
+        """The colour model, when a colour gate or the lost search uses it."""
+        pre = self.cfg.preprocess
+        return self.colour if max(pre.predicted_mask_colour, pre.predicted_mask_colour_inside) > 0 else None
 
     def _node(self, obs: Observation, feats: Features, pose: np.ndarray) -> _Node:
         factor = max(1, round(self.cfg.graph.depth_downscale * obs.depth.shape[1] / 640))
@@ -562,19 +612,12 @@ class SurgTracker:
         return again, second
 
     def _predicted_mask(self, frame: Frame, pose: np.ndarray) -> np.ndarray:
-        """No mask given: render the keyframes' points at ``pose`` and keep depth-consistent pixels; while lost,
-        the colour search around the last tracked position."""
+        """No mask given: render the keyframes' points at ``pose`` and keep depth-consistent pixels."""
         if self.model_points is None:
             return np.zeros(frame.depth.shape, bool)
         pre = self.cfg.preprocess
-        colour = self.colour if max(pre.predicted_mask_colour, pre.predicted_mask_colour_inside) > 0 else None
-        if self.lost and colour is not None:  # look for the instrument's colour where it can have moved
-            seen = max(int(self.pool.keyframes[-1].mask.sum()), self.cfg.failure.min_pixels)
-            return search_mask(colour.posterior(frame.rgb), frame.depth, frame.K, self.recent[-1].pose[:3, 3],
-                               self._reach(frame.index), pre.search_mask_colour,
-                               (self.cfg.failure.min_pixels, 3 * seen))
         return predict_mask(self.model_points, pose, frame.K, frame.depth, pre.predicted_mask_margin,
-                            pre.predicted_mask_tol, frame.rgb, colour, pre.predicted_mask_colour,
+                            pre.predicted_mask_tol, frame.rgb, self._colour(), pre.predicted_mask_colour,
                             pre.predicted_mask_front_tol, inside_posterior=pre.predicted_mask_colour_inside)
 
     def _lose(self, clock: _Clock, confidence: float = 0.0) -> TrackResult:
