@@ -46,6 +46,15 @@ def test_full_occlusion_is_lost_then_relocalised(occluded_seq, tmp_path):
     assert auc(np.array([np.inf if e is None else e for e in rest])) >= 80
 
 
+def _relocalising_every_frame() -> TrackerConfig:
+    """No field; after a loss, re-localisation on every frame and without the last pose as a candidate."""
+    cfg = TrackerConfig()
+    cfg.sdf.enabled = False
+    cfg.failure.relocalise_window = 0
+    cfg.failure.relocalise_every = 1
+    return cfg
+
+
 def _lost_after(seq, cfg: TrackerConfig) -> tuple[SurgTracker, np.ndarray]:
     """A tracker lost at frame 3 (empty mask) after three tracked frames, and the object-frame alignment to gt."""
     tracker = SurgTracker(cfg)
@@ -60,10 +69,7 @@ def test_a_relocalisation_the_model_does_not_fit_is_refused(synth_seq, monkeypat
     """A candidate that turns the shaft end for end (what FPFH can return on a long round instrument) is refused:
     the frame stays lost instead of reporting it and tracking on from it; the true pose is taken."""
     seq = open_sequence(synth_seq)
-    cfg = TrackerConfig()
-    cfg.sdf.enabled = False
-    cfg.failure.relocalise_window = 0  # no last-pose candidate: only the one given below
-    cfg.failure.relocalise_every = 1  # and re-localisation tried on every lost frame
+    cfg = _relocalising_every_frame()  # no last-pose candidate: only the one given below
     cfg.failure.relocalise_min_ncc = -1.0  # the fit check alone (the appearance check: the test below)
     frame = seq[4]
 
@@ -94,10 +100,7 @@ def test_a_relocalisation_that_fits_but_looks_wrong_is_refused(synth_seq, monkey
     appearance check; with the frame as it is, the same pose is taken, its intensities correlating with the
     keyframes'."""
     seq = open_sequence(synth_seq)
-    cfg = TrackerConfig()
-    cfg.sdf.enabled = False
-    cfg.failure.relocalise_window = 0
-    cfg.failure.relocalise_every = 1
+    cfg = _relocalising_every_frame()
     frame = seq[4]
 
     def relocalise(rgb: np.ndarray) -> tuple[str, float | None]:
@@ -120,10 +123,7 @@ def test_a_candidate_keeps_where_it_puts_the_shaft(synth_seq, monkeypatch):
     motion prior at the candidate itself, not at the last tracked pose (which would pull its slide along the
     shaft, which the frame's geometry leaves free, back to where the shaft was before the loss)."""
     seq = open_sequence(synth_seq)
-    cfg = TrackerConfig()
-    cfg.sdf.enabled = False
-    cfg.failure.relocalise_window = 0
-    cfg.failure.relocalise_every = 1
+    cfg = _relocalising_every_frame()
     tracker, align = _lost_after(seq, cfg)
     frame = seq[len(seq) - 1]
     true = seq.gt_poses()[frame.id] @ inv_T(align)
@@ -164,10 +164,7 @@ def test_without_masks_a_nearer_look_alike_does_not_take_the_relocalisation(synt
     it. Trying only the nearest region, the frame stays lost (no pose on the piece is taken); trying the nearest
     four, the instrument is found where it moved."""
     seq = open_sequence(synth_seq)
-    cfg = TrackerConfig()
-    cfg.sdf.enabled = False
-    cfg.failure.relocalise_window = 0
-    cfg.failure.relocalise_every = 1
+    cfg = _relocalising_every_frame()
     frame = seq[4]
     v, u = np.nonzero(frame.mask)
     shaft = np.linalg.eigh(np.cov(np.stack([u, v])))[1][:, -1]  # the shaft's direction in the image
