@@ -268,7 +268,7 @@ class SurgTracker:
         """The frame's observation, its node at the tracked pose and the feature inlier count: coarse pose (eq. 5)
         and posture graph (eqs. 7-11) while tracking, re-localisation (step 5) while lost; None when lost."""
         predicted = mask is None
-        if mask is None:
+        if predicted:
             mask = self._predicted_mask(frame, self.recent[-1].pose)
         obs = preprocess(frame, mask, self.cfg.preprocess)
         clock.lap("preprocess")
@@ -311,16 +311,17 @@ class SurgTracker:
         best, best_iou = None, f.relocalise_min_iou
         for region in regions:
             obs = preprocess(frame, region, pre)
+            clock.lap("preprocess")
             if obs.n_valid < f.min_pixels:
                 continue
             feats = self.extractor(obs)
+            clock.lap("features")
             found = self._relocalise(obs, feats)
-            if found is None:
-                continue
-            iou = silhouette_iou(self.model_points, found[0].pose, frame.K, region)
-            if iou >= best_iou:
-                best, best_iou = (obs, *found), iou
-        clock.lap("ransac")
+            if found is not None:
+                iou = silhouette_iou(self.model_points, found[0].pose, frame.K, region)
+                if iou >= best_iou:
+                    best, best_iou = (obs, *found), iou
+            clock.lap("ransac")
         if best is not None and self.cfg.preprocess.predicted_mask_remask:
             # the region may have merged with a hand of the instrument's colour: mask again at the found pose
             obs, node = self._remasked(best[0], best[1], [])
