@@ -108,19 +108,24 @@ def test_search_finds_the_nearest_instrument_coloured_regions_of_plausible_size(
 
 def test_search_cuts_a_merged_region_where_the_depth_jumps():
     """The instrument's colour region runs into a nearer hand of a similar colour: too big as a whole, the region
-    is cut at the depth step and at missing depth between them, and the instrument's part is found."""
+    is cut at the depth step and at missing depth between them, and the instrument's part is found, even when a
+    small look-alike elsewhere is of a plausible size as it is."""
     rgb, depth, mask = scene()
     colours = ColourModel()
     colours.learn(rgb, mask)
-    # the hand touches the bar's end, 8 cm nearer
-    rgb2, depth2, (bar, hand) = later_frame([(np.s_[50:70, 10:115], 0.32), (np.s_[:, 115:], 0.24)])
+    # the hand touches the bar's end, 8 cm nearer; a fingertip-sized grey patch lies nearer the last position
+    parts = [(np.s_[50:70, 10:115], 0.32), (np.s_[:, 115:], 0.24), (np.s_[5:15, 70:80], 0.3)]
+    rgb2, depth2, (bar, hand, patch) = later_frame(parts)
     depth2[60, 60:64] = 0.0  # dropouts on the bar stay inside it
     depth2[30:40, 110:120] = 0.0  # and at the hand's edge
-    last = np.array([0.0, 0.0, 0.3])
+    last = np.array([0.0, -0.03, 0.3])
     pixels = (40, 3 * int(mask.sum()))
-    (found,) = search_regions(colours.posterior(rgb2), depth2, K, last, 0.5, 0.6, pixels)
-    assert found.sum() > 0.9 * (bar & (depth2 > 0)).sum() and not (found & hand).any()
-    assert not search_regions(colours.posterior(rgb2), depth2, K, last, 0.5, 0.6, pixels, depth_step=0.1)
+    found = search_regions(colours.posterior(rgb2), depth2, K, last, 0.5, 0.6, pixels, n=3)
+    assert any((region == patch).all() for region in found)
+    (cut,) = [region for region in found if (region & bar).any()]
+    assert cut.sum() > 0.9 * (bar & (depth2 > 0)).sum() and not (cut & hand).any()
+    uncut = search_regions(colours.posterior(rgb2), depth2, K, last, 0.5, 0.6, pixels, n=3, depth_step=0.1)
+    assert any((region == patch).all() for region in uncut) and not any((region & bar).any() for region in uncut)
 
 
 def test_predicted_mask_leaves_out_a_glove_inside_the_outline_whose_colour_the_first_frame_saw_further_away():

@@ -137,33 +137,39 @@ def search_regions(posterior: np.ndarray, depth: np.ndarray, K: np.ndarray, cent
     instrument with at least ``min_posterior``, of a plausible pixel count (``pixels``: min, max, counting pixels
     with valid depth), whose 3D centroid lies within ``radius`` of ``centre`` (camera frame: where the instrument
     was last seen); the ``n`` nearest to it, nearest first, each as its pixels with valid depth.
-    Connectivity is by colour alone, so depth dropouts along a thin shaft do not break it apart; when no region
-    qualifies (the instrument's region merged with a hand or drape of a similar colour), the regions are cut
-    again, 4-connected, where the depth is missing or jumps by more than ``depth_step`` (the far side of the
-    jump is cut off, so a diagonal contact does not join them)."""
-    colour = posterior >= min_posterior
-    found = _nearest_regions(colour, depth, K, centre, radius, pixels, n)
-    if not found:
-        cut = colour & (depth > 0) & ~_depth_edges(depth, depth_step)
-        found = _nearest_regions(cut, depth, K, centre, radius, pixels, n, connectivity=4)
-    return found
+    Connectivity is by colour alone, so depth dropouts along a thin shaft do not break it apart; a region too large
+    (the instrument's merged with a hand, drape or tissue of a similar colour) is cut again, 4-connected, where the
+    depth is missing or jumps by more than ``depth_step`` (the far side of the jump is cut off, so a diagonal
+    contact does not join them), and its pieces compete with the other regions."""
+    labels, area = _regions(posterior >= min_posterior, depth, 8)
+    too_big = np.isin(labels, np.flatnonzero(area > pixels[1])) & (labels > 0)
+    pieces, piece_area = _regions(too_big & ~_depth_edges(depth, depth_step), depth, 4)
+    xyz = depth_to_xyz(depth, K)
+    near = _near(labels, area, xyz, centre, radius, pixels) + _near(pieces, piece_area, xyz, centre, radius, pixels)
+    near.sort(key=lambda found: found[0])
+    return [region for _, region in near[:n]]
 
 
-def _nearest_regions(candidates: np.ndarray, depth: np.ndarray, K: np.ndarray, centre: np.ndarray, radius: float,
-                     pixels: tuple[int, int], n: int, connectivity: int = 8) -> list[np.ndarray]:
-    """`search_regions`' choice among the connected regions of ``candidates``."""
+def _regions(candidates: np.ndarray, depth: np.ndarray, connectivity: int) -> tuple[np.ndarray, np.ndarray]:
+    """The connected regions of ``candidates`` as a label image (0: none, or no valid depth) and their areas in
+    pixels with valid depth."""
     count, labels = cv2.connectedComponents(candidates.astype(np.uint8), connectivity=connectivity)
     labels[depth <= 0] = 0
-    area = np.bincount(labels.ravel(), minlength=count)
-    xyz = depth_to_xyz(depth, K)
+    return labels, np.bincount(labels.ravel(), minlength=count)
+
+
+def _near(labels: np.ndarray, area: np.ndarray, xyz: np.ndarray, centre: np.ndarray, radius: float,
+          pixels: tuple[int, int]) -> list[tuple[float, np.ndarray]]:
+    """`search_regions`' regions of a plausible size within ``radius``, with their centroids' distances."""
     near = []
     for label in np.flatnonzero((area >= pixels[0]) & (area <= pixels[1])):
         if label == 0:
             continue
-        distance = float(np.linalg.norm(np.median(xyz[labels == label], axis=0) - centre))
+        region = labels == label
+        distance = float(np.linalg.norm(np.median(xyz[region], axis=0) - centre))
         if distance <= radius:
-            near.append((distance, label))
-    return [labels == label for _, label in sorted(near)[:n]]
+            near.append((distance, region))
+    return near
 
 
 def silhouette_iou(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, mask: np.ndarray) -> float:
