@@ -142,10 +142,12 @@ def search_regions(posterior: np.ndarray, depth: np.ndarray, K: np.ndarray, cent
     depth is missing or jumps by more than ``depth_step`` (the far side of the jump is cut off, so a diagonal
     contact does not join them), and its pieces compete with the other regions."""
     labels, area = _regions(posterior >= min_posterior, depth, 8)
-    too_big = np.isin(labels, np.flatnonzero(area > pixels[1])) & (labels > 0)
-    pieces, piece_area = _regions(too_big & ~_depth_edges(depth, depth_step), depth, 4)
     xyz = depth_to_xyz(depth, K)
-    near = _near(labels, area, xyz, centre, radius, pixels) + _near(pieces, piece_area, xyz, centre, radius, pixels)
+    near = _near(labels, area, xyz, centre, radius, pixels)
+    too_big = np.flatnonzero(area[1:] > pixels[1]) + 1
+    if len(too_big):
+        pieces, piece_area = _regions(np.isin(labels, too_big) & ~_depth_edges(depth, depth_step), depth, 4)
+        near += _near(pieces, piece_area, xyz, centre, radius, pixels)
     near.sort(key=lambda found: found[0])
     return [region for _, region in near[:n]]
 
