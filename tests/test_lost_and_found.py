@@ -136,6 +136,29 @@ def test_a_candidate_keeps_where_it_puts_the_shaft(synth_seq, monkeypatch):
     assert np.linalg.norm(error[:3, 3]) < 0.005 and rotation_angle_deg(error[:3, :3]) < 5
 
 
+def test_a_relocalisation_further_than_the_instrument_can_have_moved_is_refused(synth_seq, monkeypatch):
+    """A candidate is taken only within ``failure.relocalise_max_speed`` times the frames since the last tracked
+    one: here the true pose, 27 frames after the loss, taken under the default bound and refused (the frame stays
+    lost) under a bound half the distance the instrument really moved."""
+    seq = open_sequence(synth_seq)
+    frame = seq[len(seq) - 1]
+
+    def relocalise(speed: float | None) -> tuple[str, float]:
+        cfg = _relocalising_every_frame()
+        if speed is not None:
+            cfg.failure.relocalise_max_speed = speed
+        tracker, align = _lost_after(seq, cfg)
+        true = seq.gt_poses()[frame.id] @ inv_T(align)
+        monkeypatch.setattr(tracker, "_candidates", lambda obs, feats, last: [(true, [], 0)])
+        last = tracker.recent[-1]
+        needed = np.linalg.norm((inv_T(last.pose) @ true)[:3, 3]) / (frame.index - last.index)
+        return tracker.track(frame, frame.mask).status, needed
+
+    status, speed = relocalise(None)
+    assert status == RELOCALISED and speed > 0
+    assert relocalise(speed / 2)[0] == LOST
+
+
 def test_a_long_loss_is_relocalised_on_every_few_frames_only(synth_seq, monkeypatch):
     """Re-localisation, the costliest step, runs on every frame of the window after a loss, then on every
     ``relocalise_every``-th: the frames between are reported lost at once, and a frame that fits is still taken."""

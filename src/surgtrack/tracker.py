@@ -469,8 +469,8 @@ class SurgTracker:
 
     def _reach(self, index: int) -> float:
         """How far (m) the instrument's origin can have moved since the last tracked frame, by frame ``index``:
-        the physical per-frame bound times the frames between."""
-        return self.cfg.ransac.max_jump_trans * (index - self.recent[-1].index)
+        ``failure.relocalise_max_speed`` times the frames between."""
+        return self.cfg.failure.relocalise_max_speed * (index - self.recent[-1].index)
 
     def _predicted_pose(self) -> np.ndarray:
         """Constant-velocity prediction from the last two tracked frames when they are consecutive (a gap, such
