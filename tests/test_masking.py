@@ -58,6 +58,32 @@ def test_predicted_mask_does_not_grow_into_a_hand_at_the_instruments_depth():
     assert (gated & mask).sum() >= 0.95 * mask.sum()  # the instrument itself is all kept
 
 
+def test_a_hand_once_seen_in_front_of_the_instrument_stays_out_of_the_mask_beside_it():
+    """A glove the first frame did not show decides nothing (posterior 0.5) and gets into the mask where it touches
+    the instrument at its depth; once its pixels were seen in front of the instrument (`add_surroundings`), the
+    colour gate keeps it out, and the instrument itself is still all kept."""
+    rgb, depth, mask = scene()
+    colours = ColourModel()
+    colours.learn(rgb, mask)  # no hand in the first frame
+    rgb2, depth2 = rgb.copy(), depth.copy()
+    hand = np.zeros_like(mask)
+    hand[45:75, 130:134] = True
+    rgb2[hand], depth2[hand] = SKIN, 0.3
+    points = bar_points(mask, depth)
+
+    def gated() -> np.ndarray:
+        return predict_mask(points, np.eye(4), K, depth2, 6, 0.01, rgb2, colours, 0.25)
+
+    assert (gated() & hand).sum() > 50
+    front = np.zeros_like(mask)
+    front[50:70, 60:70] = True  # an earlier frame: the hand across the bar, 5 cm in front of it
+    rgb3 = rgb.copy()
+    rgb3[front] = SKIN
+    colours.add_surroundings(rgb3, front)
+    assert not (gated() & hand).any()
+    assert (gated() & mask).sum() >= 0.95 * mask.sum()
+
+
 def later_frame(parts: list[tuple[tuple[slice, slice], float]]) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
     """A frame of `scene`'s drape with grey ``parts`` (image region, depth) on it: rgb, depth, the parts' masks."""
     rgb, depth, _ = scene()

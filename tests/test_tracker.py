@@ -180,3 +180,27 @@ def test_tracks_from_the_first_mask_only(synth_seq, tmp_path):
     iou = [(k.mask & truth[k.frame_id]).sum() / (k.mask | truth[k.frame_id]).sum() for k in tracker.pool.keyframes[1:]]
     assert min(iou) > 0.78 and np.mean(iou) > 0.87, iou  # not masked again: mean 0.85
 
+
+
+@pytest.mark.parametrize("gap", [0.02, 0.0])
+def test_without_masks_an_occluder_in_front_of_the_instrument_teaches_the_colour_model(synth_seq, gap):
+    """Tracked without a mask, the pixels well in front of the model at the tracked pose (a hand across the
+    instrument) join the colour model's surroundings, so the same colour is kept out of later masks beside the
+    instrument (``preprocess.colour_occluder_gap``; 0 turns it off)."""
+    seq = open_sequence(synth_seq)
+    cfg = TrackerConfig()
+    cfg.sdf.enabled = False
+    cfg.preprocess.colour_occluder_gap = gap
+    tracker = SurgTracker(cfg)
+    tracker.register(seq[0], seq[0].mask)
+    glove = np.array([[[150, 60, 200]]], np.uint8)
+    assert abs(tracker.colour.posterior(glove)[0, 0] - 0.5) < 0.01  # not seen in the first frame
+    for frame in seq[1], seq[2], seq[3]:
+        v, u = np.nonzero(frame.mask & (frame.depth > 0))
+        across = np.abs(u - np.median(u)) < 10  # a band of the instrument's pixels, covered by a violet glove
+        rgb, depth = frame.rgb.copy(), frame.depth.copy()
+        rgb[v[across], u[across]] = glove
+        depth[v[across], u[across]] -= 0.05
+        assert tracker.track(replace(frame, rgb=rgb, depth=depth), None).status == "tracked"
+    learnt = tracker.colour.posterior(glove)[0, 0] < cfg.preprocess.predicted_mask_colour
+    assert learnt == (gap > 0)

@@ -20,6 +20,8 @@ class PreprocessConfig:
     predicted_mask_colour_inside: float = 0.1  # min colour posterior of pixels inside the rendered model (0: off)
     colour_bins: int = 32  # colour model: histogram bins per RGB channel
     colour_ring: int = 120  # colour model: outer radius (pixels) of the first frame's surroundings around the mask
+    colour_occluder_gap: float = 0.0  # m: pixels this far in front of the model at a tracked pose (no mask given)
+    # are an occluder, and its colours join the colour model's surroundings (0: off; 0.02 measured, see RESULTS.md)
     predicted_mask_remask: bool = True  # mask a frame again at its tracked pose and optimise the graph once more
     search_mask_colour: float = 0.6  # lost without a given mask: pixels whose colour is instrument with this posterior
     normal_step: int = 1  # normals from neighbours this many pixels away (larger: smoother, fewer thin-part pixels)

@@ -79,19 +79,23 @@ class ColourModel:
     instrument. The ring reaches far (120 px) because the hand that later touches the instrument is often further
     away in the first frame, and the bins are fine (32 a channel) because a pale glove and bright steel share
     coarser ones. (Refreshing the surroundings from later frames was measured to hurt: the ring then takes in parts
-    of the instrument the model has not seen yet.)"""
+    of the instrument the model has not seen yet. What lies well in front of the model at a tracked pose cannot be
+    the instrument, and `add_surroundings` takes it in.)"""
 
     def __init__(self, bins: int = 32, ring: int = 120):
         self.bins, self.ring = bins, ring
         self.instrument: np.ndarray | None = None
         self.surroundings: np.ndarray | None = None
+        self._counts: np.ndarray | None = None  # the surroundings' raw counts, which `add_surroundings` extends
 
     def _index(self, rgb: np.ndarray) -> np.ndarray:
         q = (rgb.astype(np.int32) * self.bins) >> 8
         return (q[..., 0] * self.bins + q[..., 1]) * self.bins + q[..., 2]
 
-    def _histogram(self, rgb: np.ndarray, where: np.ndarray) -> np.ndarray:
-        counts = np.bincount(self._index(rgb)[where], minlength=self.bins ** 3).astype(np.float64)
+    def _count(self, rgb: np.ndarray, where: np.ndarray) -> np.ndarray:
+        return np.bincount(self._index(rgb)[where], minlength=self.bins ** 3).astype(np.float64)
+
+    def _histogram(self, counts: np.ndarray) -> np.ndarray:
         h = gaussian_filter(counts.reshape((self.bins,) * 3), 1.0, mode="constant").ravel()
         return h / max(h.sum(), 1e-12)
 
@@ -103,8 +107,17 @@ class ColourModel:
 
     def learn(self, rgb: np.ndarray, mask: np.ndarray) -> None:
         """Start from a given instrument mask: its pixels are instrument, a ring around it surroundings."""
-        self.instrument = self._histogram(rgb, mask.astype(bool))
-        self.surroundings = self._histogram(rgb, self._ring(mask))
+        self.instrument = self._histogram(self._count(rgb, mask.astype(bool)))
+        self._counts = self._count(rgb, self._ring(mask))
+        self.surroundings = self._histogram(self._counts)
+
+    def add_surroundings(self, rgb: np.ndarray, where: np.ndarray) -> None:
+        """Pixels known not to be the instrument (an occluder in front of it at a tracked pose) join the
+        surroundings: a glove first seen on the instrument later stays out of the mask beside it too."""
+        if self._counts is None or not where.any():
+            return
+        self._counts = self._counts + self._count(rgb, where)
+        self.surroundings = self._histogram(self._counts)
 
     def posterior(self, rgb: np.ndarray) -> np.ndarray:
         """P(instrument | colour) for each RGB triple of ``rgb`` (..., 3), equal priors (0.5 where neither

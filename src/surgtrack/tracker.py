@@ -34,7 +34,7 @@ from .geometry import (
 )
 from .global_registration import global_register, icp_from
 from .io import Frame
-from .masking import ColourModel, predict_mask, search_regions, silhouette_iou
+from .masking import ColourModel, predict_mask, render_depth, search_regions, silhouette_iou
 from .memory_pool import Keyframe, MemoryPool
 from .model import InstrumentModel
 from .posture_graph import FeatureEdge, GraphNode, optimize_graph
@@ -253,6 +253,8 @@ class SurgTracker:
         if confidence < self.cfg.failure.min_confidence:
             return self._lose(clock, confidence)
         status = RELOCALISED if self.lost else TRACKED
+        if mask is None and status == TRACKED:
+            self._learn_occluders(frame, pose)
         self.lost = False
         self.frames_lost = 0
         self.recent.append(node)
@@ -611,6 +613,15 @@ class SurgTracker:
         second = self._node(again, self.extractor(again), node.pose)
         second.pose = orthonormalize(self._optimise(second, edges))
         return again, second
+
+    def _learn_occluders(self, frame: Frame, pose: np.ndarray) -> None:
+        """Teach the colour model what covers the instrument: the pixels inside the model's silhouette at the
+        tracked ``pose`` that lie ``preprocess.colour_occluder_gap`` or more in front of it (a hand, a tool)."""
+        gap = self.cfg.preprocess.colour_occluder_gap
+        if gap <= 0 or self._colour() is None or self.model_points is None:
+            return
+        model = render_depth(self.model_points, pose, frame.K, frame.depth.shape)
+        self.colour.add_surroundings(frame.rgb, (model > 0) & (frame.depth > 0) & (frame.depth < model - gap))
 
     def _predicted_mask(self, frame: Frame, pose: np.ndarray) -> np.ndarray:
         """No mask given: render the keyframes' points at ``pose`` and keep depth-consistent pixels."""
