@@ -76,7 +76,7 @@ def test_a_hand_once_seen_in_front_of_the_instrument_stays_out_of_the_mask_besid
 
     assert (gated() & hand).sum() > 50
     front = np.zeros_like(mask)
-    front[50:70, 60:70] = True  # an earlier frame: the hand across the bar, 5 cm in front of it
+    front[50:70, 60:70] = True  # where the hand lay across the bar, in front of it, in an earlier frame
     rgb3 = rgb.copy()
     rgb3[front] = SKIN
     colours.add_surroundings(rgb3, front)
