@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 from helpers import assert_one_line_error, surgtrack
 
-from surgtrack.bench import format_table, method_config, shorten
+from surgtrack.bench import _mean, format_table, method_config, shorten
 from surgtrack.config import TrackerConfig
 from surgtrack.synth import SynthSpec
 
@@ -52,6 +52,20 @@ def test_table_has_a_row_per_method_and_sequence():
                                "stage_ms": {"graph": 20.0}, "sequences": {"s1": seq, "s2": seq}}
                            for m in ("surgtrack", "icp")}}
     table = format_table(results)
-    assert "| surgtrack | 95.00 | 90.00 | - | 12.0 | 500 | graph 20.0 |" in table
+    assert "| surgtrack | 95.00 | 90.00 | - | - | - | 12.0 | 500 | graph 20.0 |" in table  # a bench.json of before
     assert "| s2 | 95.00 / 90.00 | 95.00 / 90.00 |" in table
     assert "![a.png](a.png)" in table
+
+
+def test_table_reports_lost_frames_apart_from_frames_given_a_wrong_pose():
+    """lost % is over every frame; wrong % over the frames given a pose, so an honest loss does not count as
+    wrong."""
+    def seq(lost: int, wrong: int) -> dict:
+        return {"add_s_auc": 80.0, "add_auc": 70.0, "cd_cm": 0.5, "lost": lost, "wrong": wrong, "frames": 100,
+                "fps": 10.0, "stage_ms": {"graph": 20.0}}
+
+    mean = _mean({"s1": seq(lost=20, wrong=0), "s2": seq(lost=0, wrong=36)})
+    assert mean["lost_pct"] == pytest.approx(10.0) and mean["wrong_pct"] == pytest.approx(20.0)
+    table = format_table({"suite": "instrument3d", "first_mask_only": True,
+                          "methods": {"surgtrack": {**mean, "sequences": {}}}})
+    assert "| surgtrack | 80.00 | 70.00 | 0.50 | 10.00 | 20.00 | 10.0 | - | graph 20.0 |" in table

@@ -222,6 +222,20 @@ def test_evaluate_counts_missing_frames(box_sequence, tmp_path: Path):
     assert r["cd_cm"] is None
 
 
+def test_evaluate_counts_frames_given_a_wrong_pose_apart_from_lost_ones(box_sequence, tmp_path: Path):
+    """A tracker that gives a pose 20 cm off instead of reporting the frame lost scores the same AUC, but ``wrong``
+    tells the two apart: the pose a navigation system would have shown."""
+    seq, _, _ = box_sequence
+    gt = seq.gt_poses()
+    off = {k: (shift(0.2) @ T if k in ("000004", "000005") else T) for k, T in gt.items()}
+    lost = {k: T for k, T in gt.items() if k not in ("000004", "000005")}
+    r_off = evaluate(write_result(tmp_path / "off", off), seq)
+    r_lost = evaluate(write_result(tmp_path / "lost", lost), seq)
+    assert r_off["add_auc"] == pytest.approx(r_lost["add_auc"], abs=1e-6)
+    assert (r_off["wrong"], r_off["missing"]) == (2, 0)
+    assert (r_lost["wrong"], r_lost["missing"]) == (0, 2)
+
+
 def test_evaluate_without_frame_zero_aligns_on_the_first_predicted_frame(box_sequence, tmp_path: Path):
     seq, _, _ = box_sequence
     X = shift(0.2, 0.1, 0.0)

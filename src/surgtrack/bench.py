@@ -121,7 +121,7 @@ def _run_method(method: str, names: list[str], root: Path, first_mask_only: bool
             first = m["errors"]["add"]
         per_seq[name] = {"add_s_auc": m["add_s_auc"], "add_auc": m["add_auc"], "cd_cm": m["cd_cm"],
                          "add_s_auc_full": m["add_s_auc_full"], "add_auc_full": m["add_auc_full"],
-                         "lost": summary.lost, "frames": summary.frames, "fps": summary.fps,
+                         "lost": summary.lost, "wrong": m["wrong"], "frames": summary.frames, "fps": summary.fps,
                          "stage_ms": summary.stage_ms, "seconds": time.perf_counter() - t0}
         log(f"{method:>15} {name:<18} ADD-S {m['add_s_auc']:6.2f}  ADD {m['add_auc']:6.2f}  "
             f"lost {summary.lost:3d}  {summary.fps:5.1f} fps")
@@ -137,7 +137,11 @@ def _mean(per_seq: dict) -> dict:
     seconds = sum(v["frames"] / v["fps"] for v in per_seq.values() if v["fps"] > 0)
     stages = {k: float(np.mean([v["stage_ms"].get(k, 0.0) for v in per_seq.values()]))
               for k in {k for v in per_seq.values() for k in v["stage_ms"]}}
+    lost = sum(v["lost"] for v in per_seq.values())
+    wrong = sum(v["wrong"] for v in per_seq.values())
     return {"add_s_auc": avg("add_s_auc"), "add_auc": avg("add_auc"), "cd_cm": avg("cd_cm"),
+            "lost_pct": 100 * lost / frames if frames else None,
+            "wrong_pct": 100 * wrong / (frames - lost) if frames > lost else None,
             "fps": frames / seconds if seconds else 0.0, "stage_ms": stages}
 
 
@@ -146,15 +150,17 @@ def _fmt(x: float | None) -> str:
 
 
 def format_table(results: dict) -> str:
-    """The paper's layout: one row a method (ADD-S AUC %, ADD AUC %, CD cm, frames/s), then per-sequence detail."""
+    """The paper's layout: one row a method (ADD-S AUC %, ADD AUC %, CD cm, frames/s), then per-sequence detail.
+    Beside the paper's columns: the share of frames reported lost, and of the frames given a pose, the share more
+    than 5 cm off in ADD-S (`metrics.WRONG_ERR`: a lost instrument not reported lost)."""
     lines = [f"## {results['suite']}" + (" (first-frame mask only)" if results["first_mask_only"] else ""), "",
-             "| method | ADD-S AUC % | ADD AUC % | CD cm | frames/s | peak MB | ms per stage |",
-             "|---|---|---|---|---|---|---|"]
+             "| method | ADD-S AUC % | ADD AUC % | CD cm | lost % | wrong % | frames/s | peak MB | ms per stage |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for method, r in results["methods"].items():
         stages = ", ".join(f"{k} {v:.1f}" for k, v in sorted(r["stage_ms"].items()))
         peak = f"{r['peak_rss_mb']:.0f}" if r.get("peak_rss_mb") else "-"
         lines.append(f"| {method} | {_fmt(r['add_s_auc'])} | {_fmt(r['add_auc'])} | {_fmt(r['cd_cm'])} | "
-                     f"{r['fps']:.1f} | {peak} | {stages} |")
+                     f"{_fmt(r.get('lost_pct'))} | {_fmt(r.get('wrong_pct'))} | {r['fps']:.1f} | {peak} | {stages} |")
     lines += ["", "| sequence | " + " | ".join(f"{m} ADD-S / ADD" for m in results["methods"]) + " |",
               "|---|" + "---|" * len(results["methods"])]
     names = next(iter(results["methods"].values()))["sequences"].keys() if results["methods"] else []

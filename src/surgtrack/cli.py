@@ -133,6 +133,7 @@ def eval_cmd(
                              ("add_auc_full", "ADD AUC, whole model", " %"), ("cd_cm", "Chamfer distance", " cm")]:
         table.add_row(label, fmt(result[key], unit))
     table.add_row("frames scored / missing", f"{result['frames']} / {result['missing']}")
+    table.add_row("posed frames over 5 cm off (ADD-S)", str(result["wrong"]))
     Console().print(table)
     if plot:
         from .plots import plot_evaluation

@@ -32,6 +32,7 @@ N_MODEL_POINTS = 10_000  # protocol step 2
 SEED = 0
 AUC_MAX_ERR = 0.1  # m, protocol step 4
 ICP_MAX_DIST = 0.02  # m, protocol step 5
+WRONG_ERR = 0.05  # m, ADD-S above which a frame given a pose counts as wrong (not lost: the tracker gave a pose)
 N_MESH_SAMPLES = 50_000  # dense sampling of the reconstructed mesh for the Chamfer distance
 N_ICP_POINTS = 10_000  # of those samples, the ones ICP aligns
 MAX_SURFACE_POINTS = 200_000  # ground-truth surface points kept for the Chamfer distance
@@ -195,8 +196,9 @@ def evaluate(out_dir: Path | str, seq: RGBDSequence) -> dict:
 
     Returns a JSON-serialisable dict: ``add_s_auc``, ``add_auc`` (percent, over the seen-surface model points),
     ``add_s_auc_full``, ``add_auc_full`` (whole model; None without one), ``cd_cm`` (None without OUT/mesh.ply),
-    ``frames`` (frames with ground truth), ``missing`` (those without a prediction), ``missing_ids``, ``anchor``
-    and ``errors``: per-frame ADD / ADD-S in metres keyed by frame id (None for a missing frame).
+    ``frames`` (frames with ground truth), ``missing`` (those without a prediction: lost), ``missing_ids``,
+    ``wrong`` (frames given a pose that is more than WRONG_ERR off in ADD-S: a lost instrument not reported lost),
+    ``anchor`` and ``errors``: per-frame ADD / ADD-S in metres keyed by frame id (None for a missing frame).
     Raises SequenceError when the result or the ground truth cannot be scored.
     """
     out = Path(out_dir)
@@ -232,6 +234,7 @@ def evaluate(out_dir: Path | str, seq: RGBDSequence) -> dict:
         "frames": len(ids),
         "missing": int(sum(p is None for p in P)),
         "missing_ids": [i for i, p in zip(ids, P, strict=True) if p is None],
+        "wrong": int(np.sum(np.isfinite(adds) & (adds > WRONG_ERR))),
         "anchor": anchor,
         "model_points": "visible_points" if visible is not None and len(visible) else "model",
         "add_s_auc": auc(adds),
