@@ -138,25 +138,27 @@ def test_a_candidate_keeps_where_it_puts_the_shaft(synth_seq, monkeypatch):
 
 def test_a_relocalisation_further_than_the_instrument_can_have_moved_is_refused(synth_seq, monkeypatch):
     """A candidate is taken only within ``failure.relocalise_max_speed`` times the frames since the last tracked
-    one: here the true pose, 27 frames after the loss, taken under the default bound and refused (the frame stays
-    lost) under a bound half the distance the instrument really moved."""
+    one, and never further than ``failure.relocalise_max_reach``: here the true pose, 27 frames after the loss, taken
+    under the defaults and refused (the frame stays lost) under a speed, or a cap, half what the instrument really
+    needed."""
     seq = open_sequence(synth_seq)
     frame = seq[len(seq) - 1]
 
-    def relocalise(speed: float | None) -> tuple[str, float]:
+    def relocalise(**failure: float) -> tuple[str, float, int]:
         cfg = _relocalising_every_frame()
-        if speed is not None:
-            cfg.failure.relocalise_max_speed = speed
+        cfg.failure = replace(cfg.failure, **failure)
         tracker, align = _lost_after(seq, cfg)
         true = seq.gt_poses()[frame.id] @ inv_T(align)
         monkeypatch.setattr(tracker, "_candidates", lambda obs, feats, last: [(true, [], 0)])
         last = tracker.recent[-1]
-        needed = np.linalg.norm((inv_T(last.pose) @ true)[:3, 3]) / (frame.index - last.index)
-        return tracker.track(frame, frame.mask).status, needed
+        moved = np.linalg.norm((inv_T(last.pose) @ true)[:3, 3])
+        return tracker.track(frame, frame.mask).status, moved, frame.index - last.index
 
-    status, speed = relocalise(None)
-    assert status == RELOCALISED and speed > 0
-    assert relocalise(speed / 2)[0] == LOST
+    status, moved, frames = relocalise()
+    assert status == RELOCALISED and moved > 0
+    assert relocalise(relocalise_max_speed=moved / frames / 2)[0] == LOST
+    assert relocalise(relocalise_max_reach=moved / 2)[0] == LOST
+    assert relocalise(relocalise_max_reach=0.0)[0] == RELOCALISED  # 0: no cap
 
 
 def test_a_long_loss_is_relocalised_on_every_few_frames_only(synth_seq, monkeypatch):

@@ -91,6 +91,7 @@ class FailureConfig:
     relocalise_prior_null: float = 0.01  # graph.prior_null for re-localisation candidates (prior at each candidate)
     relocalise_w_m: float = 10.0  # graph.w_m for re-localisation candidates: a candidate is held where it was found
     relocalise_max_speed: float = 0.1  # m a frame the origin can have moved while lost (re-localisation's reach)
+    relocalise_max_reach: float = 0.2  # m, the reach grows with the frames lost up to this (0: no cap)
     relocalise_max_fit: float = 0.005  # m, median distance of a re-localised frame's points to the model
     search_regions: int = 4  # no mask while lost: colour regions nearest the last position tried for re-localisation
     relocalise_min_iou: float = 0.12  # no mask while lost: least IoU of the model's silhouette with its region

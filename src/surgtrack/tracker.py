@@ -303,11 +303,13 @@ class SurgTracker:
         """Re-localisation without a mask (step 5): against each of the ``failure.search_regions`` colour regions
         nearest the last position (`masking.search_regions`); the winner is the pose whose model silhouette agrees
         best with its region (`masking.silhouette_iou`), if by at least ``failure.relocalise_min_iou``. The model's
-        fit alone prefers a fingertip-sized region, which some part of the model always fits."""
+        fit alone prefers a fingertip-sized region, which some part of the model always fits. Regions are looked for
+        within the reach without its cap: a region's centroid can lie far from the instrument's origin (a long
+        shaft), and the pose found on it is held to the cap anyway."""
         f, pre = self.cfg.failure, self.cfg.preprocess
         seen = max(max(int(k.mask.sum()) for k in self.pool.keyframes), f.min_pixels)
-        regions = search_regions(colour.posterior(frame.rgb), frame.depth, frame.K,
-                                 self.recent[-1].pose[:3, 3], self._reach(frame.index), pre.search_mask_colour,
+        regions = search_regions(colour.posterior(frame.rgb), frame.depth, frame.K, self.recent[-1].pose[:3, 3],
+                                 self._reach(frame.index, capped=False), pre.search_mask_colour,
                                  (f.min_pixels, 3 * seen), f.search_regions)
         clock.lap("preprocess")
         best, best_iou = None, f.relocalise_min_iou
@@ -469,10 +471,13 @@ class SurgTracker:
         late = self.frames_lost - self.cfg.failure.relocalise_window
         return late <= 0 or late % max(self.cfg.failure.relocalise_every, 1) == 0
 
-    def _reach(self, index: int) -> float:
+    def _reach(self, index: int, capped: bool = True) -> float:
         """How far (m) the instrument's origin can have moved since the last tracked frame, by frame ``index``:
-        ``failure.relocalise_max_speed`` times the frames between."""
-        return self.cfg.failure.relocalise_max_speed * (index - self.recent[-1].index)
+        ``failure.relocalise_max_speed`` times the frames between, at most ``failure.relocalise_max_reach`` unless
+        not ``capped`` (a look-alike elsewhere in the scene is what a long loss would otherwise let in)."""
+        f = self.cfg.failure
+        reach = f.relocalise_max_speed * (index - self.recent[-1].index)
+        return min(reach, f.relocalise_max_reach) if capped and f.relocalise_max_reach > 0 else reach
 
     def _predicted_pose(self) -> np.ndarray:
         """Constant-velocity prediction from the last two tracked frames when they are consecutive (a gap, such
