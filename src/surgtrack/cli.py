@@ -115,7 +115,7 @@ def eval_cmd(
     from rich.table import Table
 
     from .io import open_sequence
-    from .metrics import evaluate
+    from .metrics import WRONG_ERR, evaluate
 
     if not depth_scale > 0:
         fail(f"--depth-scale must be positive, got {depth_scale}")
@@ -133,7 +133,7 @@ def eval_cmd(
                              ("add_auc_full", "ADD AUC, whole model", " %"), ("cd_cm", "Chamfer distance", " cm")]:
         table.add_row(label, fmt(result[key], unit))
     table.add_row("frames scored / missing", f"{result['frames']} / {result['missing']}")
-    table.add_row("posed frames over 5 cm off (ADD-S)", str(result["wrong"]))
+    table.add_row(f"posed frames over {100 * WRONG_ERR:g} cm off (ADD-S)", str(result["wrong"]))
     Console().print(table)
     if plot:
         from .plots import plot_evaluation

@@ -1,0 +1,46 @@
+"""Each re-localisation of a tracked run against the ground truth: how far the instrument really moved while lost,
+and how far the re-localised pose lies from the last tracked one (both for the tracker's object origin).
+
+    .venv/bin/python benchmarks/relocalisations.py RESULTS DATA
+
+RESULTS holds one result folder a sequence (OUT/track.jsonl, OUT/ob_in_cam/), e.g. ``bench_out/surgtrack``;
+DATA the rendered sequences of the same names, e.g. ``bench_out/data``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from surgtrack.io import open_sequence, read_poses
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("results", type=Path)
+    ap.add_argument("data", type=Path)
+    a = ap.parse_args()
+    for out in sorted(p for p in a.results.iterdir() if (p / "track.jsonl").is_file()):
+        seq = open_sequence(a.data / out.name)
+        gt, est = seq.gt_poses(), read_poses(out / "ob_in_cam")
+        status = [json.loads(line) for line in (out / "track.jsonl").read_text().splitlines()]
+        ids = [s["frame"] for s in status]
+        origin = np.linalg.inv(gt[ids[0]]) @ np.r_[est[ids[0]][:3, 3], 1]  # the tracker's origin, object frame
+        last = None
+        for i, s in enumerate(status):
+            if s["status"] == "relocalised" and last is not None:
+                prev, cur = ids[last], ids[i]
+                true_move = np.linalg.norm((gt[cur] @ origin)[:3] - (gt[prev] @ origin)[:3])
+                est_move = np.linalg.norm(est[cur][:3, 3] - est[prev][:3, 3])
+                error = np.linalg.norm(est[cur][:3, 3] - (gt[cur] @ origin)[:3])
+                print(f"{out.name:<18} lost {last}->{i} ({i - last:3d} frames)  moved: true {100 * true_move:5.1f} "
+                      f"cm, re-localised {100 * est_move:5.1f} cm  origin error {100 * error:5.1f} cm")
+            if s["status"] != "lost":
+                last = i
+
+
+if __name__ == "__main__":
+    main()
