@@ -214,6 +214,25 @@ def test_sdf_term_pulls_pose_onto_sphere():
     assert np.abs(sphere_sdf(pts)[0]).max() < 5e-4
 
 
+def test_sdf_term_leaves_out_points_the_field_has_no_value_for():
+    """Points beyond the field's box (NaN) neither move the pose nor spoil it."""
+    radius = 0.05
+    T_gt = make_T(np.eye(3), np.array([0.01, -0.005, 0.3]))
+    xyz, nrm = render_sphere(T_gt, radius)
+    T0 = make_T(np.eye(3), T_gt[:3, 3] + np.array([0.008, -0.006, 0.01]))
+    node = GraphNode(pose=T0, xyz=xyz, normals=nrm, K=K.copy())
+
+    def half_known(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        r = np.linalg.norm(p, axis=1)
+        psi, grad = r - radius, p / r[:, None]
+        psi[p[:, 0] > 0], grad[p[:, 0] > 0] = np.nan, np.nan
+        return psi, grad
+
+    out = optimize_graph([node], [], GraphConfig(), sdf=half_known, sdf_nodes=[0])
+    assert np.isfinite(out[0]).all()
+    assert np.linalg.norm(out[0][:3, 3] - T_gt[:3, 3]) < 1e-3
+
+
 def graph_with_wrong_matches(seed: int, frac: float = 0.2):
     rng = np.random.default_rng(seed)
     n = 6

@@ -219,6 +219,16 @@ def test_query_gradient_matches_finite_differences(sphere_fit) -> None:
     assert val[0] > 0.15 and np.allclose(g[0], [1.0, 0.0, 0.0])
 
 
+def test_the_field_gives_no_value_beyond_its_box_to_tracking(sphere_fit) -> None:
+    """L_SDF's hook: a shaft seen beyond the box must not pull the pose towards it, so points there get NaN."""
+    sdf = sphere_fit[0]
+    p = np.array([[0.0, 0.0, R_SPHERE], [0.2, 0.0, 0.0], [0.0, -0.05, 0.0]])
+    psi, grad = sdf(p)
+    assert abs(psi[0]) < 2e-3 and np.isfinite(grad[0]).all()
+    assert np.isnan(psi[1:]).all() and np.isnan(grad[1:]).all()
+    assert np.isfinite(sdf.query(p)[0]).all()
+
+
 def test_query_is_fast(sphere_fit) -> None:
     sdf = sphere_fit[0]
     p = np.random.default_rng(1).uniform(-0.04, 0.04, (5000, 3))

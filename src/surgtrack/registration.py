@@ -417,8 +417,15 @@ class InstrumentSDF:
 
     # -- queries -----------------------------------------------------------------------------------------------
     def __call__(self, points_obj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Same as `query` (the posture graph's L_SDF hook, eq. 11)."""
-        return self.query(points_obj)
+        """`query` within the grid box, NaN beyond it (the posture graph's L_SDF hook, eq. 11): the field knows
+        nothing of the space outside its box, and a point of a shaft seen beyond it would pull the pose along the
+        shaft towards the box."""
+        psi, grad = self.query(points_obj)
+        p = np.asarray(points_obj, dtype=np.float64).reshape(-1, 3) @ self.rotation.T
+        outside = ((p < self.grid.origin) | (p > self.grid.upper)).any(axis=1)
+        psi[outside] = np.nan
+        grad[outside] = np.nan
+        return psi, grad
 
     def values(self) -> np.ndarray:
         """Psi on the grid nodes, (nx, ny, nz) float32 metres (a cached host copy)."""

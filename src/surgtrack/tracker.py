@@ -526,8 +526,8 @@ class SurgTracker:
 
     def _field_agrees(self, node: _Node) -> bool:
         """Whether the field fits the frame at its coarse pose well enough to join the graph (L_SDF, eq. 11): the
-        median |Psi| of the frame's points below ``sdf.agree_tol`` (0: always). A field fitted from drifted
-        keyframes otherwise pulls every later pose towards its own error."""
+        median |Psi| of the frame's points within its box below ``sdf.agree_tol`` (0: always). A field fitted from
+        drifted keyframes otherwise pulls every later pose towards its own error."""
         tol = self.cfg.sdf.agree_tol
         if tol <= 0:
             return True
@@ -535,7 +535,8 @@ class SurgTracker:
         if len(pts) == 0:
             return False
         psi, _ = self.sdf(transform(inv_T(node.pose), pts[:: max(1, len(pts) // 500)]))
-        return float(np.median(np.abs(psi))) < tol
+        psi = psi[np.isfinite(psi)]  # points beyond the field's box
+        return len(psi) > 0 and float(np.median(np.abs(psi))) < tol
 
     def _model_distances(self, node: _Node) -> np.ndarray:
         """Distance of each of the frame's points, in the object frame, to the model built so far (inf beyond
