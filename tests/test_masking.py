@@ -192,3 +192,24 @@ def test_silhouette_agreement_tells_the_whole_instrument_from_a_piece_of_it():
     shifted = np.eye(4)
     shifted[1, 3] = 0.05  # the pose 5 cm off across the bar: its silhouette lands beside it
     assert silhouette_iou(points, shifted, K, mask) < 0.1
+
+
+def test_predicted_mask_grows_along_a_shaft_the_model_has_not_seen_but_not_onto_what_lies_behind_it():
+    """The model knows the bar's left half; the frame shows the whole bar, sloping away, with a grey patch on the
+    drape behind it touching its end. The grown mask takes the rest of the bar and stops at the depth jump; growth
+    spilling over far more than the mask (a grey tray at the bar's depth) is not taken."""
+    rgb, depth, mask = scene()
+    colours = ColourModel()
+    colours.learn(rgb, mask)
+    rgb2, depth2, (bar, patch) = later_frame([(np.s_[50:70, 30:150], 0.3), (np.s_[40:80, 150:160], 0.5)])
+    depth2[bar] += np.linspace(0.0, 0.05, 120)[None, :].repeat(20, 0).ravel()  # 0.4 mm per pixel further away
+    known = mask.copy()
+    known[:, 80:] = False
+    points = bar_points(known, depth2)
+    plain = predict_mask(points, np.eye(4), K, depth2, 4, 0.01, rgb2, colours, 0.25)
+    grown = predict_mask(points, np.eye(4), K, depth2, 4, 0.01, rgb2, colours, 0.25, grow_posterior=0.6)
+    assert (plain & bar).sum() < 0.6 * bar.sum()
+    assert (grown & bar).sum() >= 0.95 * bar.sum() and not (grown & patch).any()
+    rgb3, depth3, (bar, tray) = later_frame([(np.s_[50:70, 30:150], 0.3), (np.s_[70:120, :], 0.3)])
+    spilled = predict_mask(points, np.eye(4), K, depth3, 4, 0.01, rgb3, colours, 0.25, grow_posterior=0.6)
+    assert (spilled == predict_mask(points, np.eye(4), K, depth3, 4, 0.01, rgb3, colours, 0.25)).all()

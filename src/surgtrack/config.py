@@ -22,6 +22,10 @@ class PreprocessConfig:
     colour_ring: int = 120  # colour model: outer radius (pixels) of the first frame's surroundings around the mask
     colour_occluder_gap: float = 0.0  # m: pixels this far in front of the model at a tracked pose (no mask given)
     # are an occluder, and its colours join the colour model's surroundings (0: off; 0.02 measured, see RESULTS.md)
+    predicted_mask_grow: float = 0.0  # min colour posterior of pixels a predicted mask grows into, connected to it
+    # without a depth jump: parts of the instrument the model has not seen yet (0: off)
+    predicted_mask_grow_step: float = 0.01  # m: depth jump between neighbours that stops the growth
+    predicted_mask_grow_ratio: float = 2.0  # growth beyond this times the mask's area is not taken
     predicted_mask_remask: bool = True  # mask a frame again at its tracked pose and optimise the graph once more
     search_mask_colour: float = 0.6  # lost without a given mask: pixels whose colour is instrument with this posterior
     normal_step: int = 1  # normals from neighbours this many pixels away (larger: smoother, fewer thin-part pixels)

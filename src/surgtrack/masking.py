@@ -36,7 +36,8 @@ def render_depth(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, shape:
 def predict_mask(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, depth: np.ndarray,
                  margin: int, tol: float, rgb: np.ndarray | None = None, colour: ColourModel | None = None,
                  min_posterior: float = 0.0, front_tol: float | None = None, keep: float = 0.8,
-                 inside_posterior: float = 0.0) -> np.ndarray:
+                 inside_posterior: float = 0.0, grow_posterior: float = 0.0, grow_step: float = 0.01,
+                 grow_ratio: float = 2.0) -> np.ndarray:
     """Mask of the instrument at a predicted pose: observed depth within ``tol`` of the model's depth nearby.
 
     The model depth is spread over ``margin`` pixels to absorb the prediction's error; observed depth more than
@@ -46,7 +47,8 @@ def predict_mask(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, depth:
     pose was predicted). With a ``colour`` model (and the frame's ``rgb``), the pixels beyond the rendered model's
     own silhouette must also have a colour posterior of at least ``min_posterior``, so the mask grows into neither
     a hand nor tissue at the instrument's depth, and those inside it at least ``inside_posterior`` (0: not looked
-    up), so fingers touching the instrument, within the depth window, stay out too."""
+    up), so fingers touching the instrument, within the depth window, stay out too. With ``grow_posterior`` > 0 the
+    mask then grows into the parts the model does not have yet (`grow_mask`)."""
     model = render_depth(points_obj, pose, K, depth.shape)
     if not (model > 0).any():
         return np.zeros(depth.shape, bool)
@@ -64,7 +66,22 @@ def predict_mask(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, depth:
         looked = mask & ~core if inside_posterior <= 0 else mask.copy()
         least = np.where(core[looked], inside_posterior, min_posterior)
         mask[looked] = colour.posterior(rgb[looked]) >= least
+        if grow_posterior > 0 and mask.any():
+            mask = grow_mask(mask, depth, colour.posterior(rgb) >= grow_posterior, grow_step, grow_ratio)
     return mask
+
+
+def grow_mask(mask: np.ndarray, depth: np.ndarray, candidates: np.ndarray, step: float, ratio: float) -> np.ndarray:
+    """``mask`` grown into the ``candidates`` (instrument-coloured pixels with valid depth) connected to it without a
+    depth jump of more than ``step`` (m): the length of a shaft that the model has not seen yet. Growth of more than
+    ``ratio`` times the mask's own area (the instrument's colour spilling over tissue or a drape) is not taken."""
+    grown = (candidates & (depth > 0) & ~_depth_edges(depth, step)) | mask
+    _, labels = cv2.connectedComponents(grown.astype(np.uint8), connectivity=4)
+    touched = np.unique(labels[mask])
+    added = np.isin(labels, touched[touched > 0]) & ~mask
+    if added.sum() > ratio * mask.sum():
+        return mask
+    return mask | added
 
 
 RING_INNER = 6  # px: the colour model's surroundings start this far from the first mask (its edge blurs both)

@@ -636,7 +636,9 @@ class SurgTracker:
         pre = self.cfg.preprocess
         return predict_mask(self.model_points, pose, frame.K, frame.depth, pre.predicted_mask_margin,
                             pre.predicted_mask_tol, frame.rgb, self._colour(), pre.predicted_mask_colour,
-                            pre.predicted_mask_front_tol, inside_posterior=pre.predicted_mask_colour_inside)
+                            pre.predicted_mask_front_tol, inside_posterior=pre.predicted_mask_colour_inside,
+                            grow_posterior=pre.predicted_mask_grow, grow_step=pre.predicted_mask_grow_step,
+                            grow_ratio=pre.predicted_mask_grow_ratio)
 
     def _lose(self, clock: _Clock, confidence: float = 0.0) -> TrackResult:
         self.lost = True
