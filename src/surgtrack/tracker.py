@@ -334,9 +334,10 @@ class SurgTracker:
         return best
 
     def _colour(self) -> ColourModel | None:
-        """The colour model, when a colour gate or the lost search uses it."""
+        """The colour model, when a colour gate, the mask's growth or the lost search uses it."""
         pre = self.cfg.preprocess
-        return self.colour if max(pre.predicted_mask_colour, pre.predicted_mask_colour_inside) > 0 else None
+        gates = (pre.predicted_mask_colour, pre.predicted_mask_colour_inside, pre.predicted_mask_grow)
+        return self.colour if max(gates) > 0 else None
 
     def _node(self, obs: Observation, feats: Features, pose: np.ndarray) -> _Node:
         factor = max(1, round(self.cfg.graph.depth_downscale * obs.depth.shape[1] / 640))
