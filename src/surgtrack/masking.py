@@ -65,9 +65,10 @@ def predict_mask(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, depth:
         core = cv2.erode((model > 0).astype(np.uint8), np.ones((2 * SPLAT + 1,) * 2, np.uint8)).astype(bool)
         looked = mask & ~core if inside_posterior <= 0 else mask.copy()
         least = np.where(core[looked], inside_posterior, min_posterior)
-        mask[looked] = colour.posterior(rgb[looked]) >= least
-        if grow_posterior > 0 and mask.any():
-            mask = grow_mask(mask, depth, colour.posterior(rgb) >= grow_posterior, grow_step, grow_ratio)
+        posterior = colour.posterior(rgb) if grow_posterior > 0 else None  # the whole frame, once, to grow into
+        mask[looked] = (colour.posterior(rgb[looked]) if posterior is None else posterior[looked]) >= least
+        if posterior is not None and mask.any():
+            mask = grow_mask(mask, depth, posterior >= grow_posterior, grow_step, grow_ratio)
     return mask
 
 
