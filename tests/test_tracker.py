@@ -204,3 +204,38 @@ def test_without_masks_an_occluder_in_front_of_the_instrument_teaches_the_colour
         assert tracker.track(replace(frame, rgb=rgb, depth=depth), None).status == "tracked"
     learnt = tracker.colour.posterior(glove)[0, 0] < cfg.preprocess.predicted_mask_colour
     assert learnt == (gap > 0)
+
+
+def test_a_pose_slid_along_the_shaft_loses_to_the_prediction_the_model_fits(synth_seq):
+    """A tracked pose that departs from the constant-velocity prediction by more than ransac.check_jump_trans (a
+    few feature matches between a shaft's repeated markings) is checked: the refined prediction wins when the
+    model fits it better, as it does where the shaft's end no longer meets the model's."""
+    from surgtrack.preprocess import preprocess
+
+    seq = open_sequence(synth_seq)
+    cfg = TrackerConfig()
+    cfg.sdf.enabled = False
+    tracker = SurgTracker(cfg)
+    tracker.register(seq[0], seq[0].mask)
+    for i in range(1, 6):
+        tracker.track(seq[i], seq[i].mask)
+    truth = tracker.track(seq[6], seq[6].mask).pose
+    tracker.recent.pop()  # frame 6 again, from frame 5
+    obs = preprocess(seq[6], seq[6].mask, cfg.preprocess)
+    feats = tracker.extractor(obs)
+    pts = tracker.model_points
+    axis = np.linalg.svd(pts - pts.mean(axis=0), full_matrices=False)[2][0]  # the shaft, in the object frame
+    slid = tracker._node(obs, feats, truth @ make_T(np.eye(3), 0.04 * axis))
+    steady = tracker._checked_jump(obs, feats, slid)
+    assert steady is not slid
+    assert np.linalg.norm(steady.pose[:3, 3] - truth[:3, 3]) < 0.005
+    near = tracker._node(obs, feats, truth @ make_T(np.eye(3), 0.005 * axis))
+    assert tracker._checked_jump(obs, feats, near) is near  # within the check's bound: taken as it is
+    cfg.ransac.check_jump_fit = 0.01  # the prediction must fit a hundred times better: the slid node is kept
+    optimise = tracker._optimise
+    tracker._optimise = lambda *a, **k: tracker.rng.random() and optimise(*a, **k)  # its refinement draws
+    drawn = tracker.rng.bit_generator.state
+    assert tracker._checked_jump(obs, feats, slid) is slid
+    assert tracker.rng.bit_generator.state == drawn  # and the run's random draws are as they were
+    cfg.ransac.check_jump_fit = 0.0
+    assert tracker._checked_jump(obs, feats, slid) is slid  # the check off

@@ -49,6 +49,9 @@ class RansacConfig:
     refits: int = 2  # Kabsch refits on the inlier set after the best hypothesis
     max_jump_trans: float = 0.1  # m the instrument's origin moves between consecutive frames: beyond is implausible
     max_jump_rot_deg: float = 30.0  # degrees the instrument turns between consecutive frames (900 deg/s at 30 fps)
+    check_jump_trans: float = 0.02  # m a tracked pose may depart from the constant-velocity prediction unchecked
+    check_jump_rot_deg: float = 10.0  # degrees, likewise; beyond either, the refined prediction competes
+    check_jump_fit: float = 0.8  # the prediction wins when the model fits it at most this times as far (0: off)
 
 
 @dataclass

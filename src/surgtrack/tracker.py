@@ -293,6 +293,7 @@ class SurgTracker:
             node = self._node(obs, feats, orthonormalize(pose))  # chained estimates would drift off SO(3)
             if self.cfg.graph.enabled:
                 node.pose = orthonormalize(self._optimise(node, edges))
+                node = self._checked_jump(obs, feats, node)
                 clock.lap("graph")
                 if predicted and self.cfg.preprocess.predicted_mask_remask:
                     obs, node = self._remasked(obs, node, edges)
@@ -382,6 +383,30 @@ class SurgTracker:
         pose = self._predicted_pose()
         pair = self._matches(last, feats, pose)
         return pose, [] if pair is None else [(last, *pair[1:])], 0
+
+    def _checked_jump(self, obs: Observation, feats: Features, node: _Node) -> _Node:
+        """The tracked ``node``, or the constant-velocity prediction refined by the posture graph (eqs. 7-11) when
+        the node departs from it by more than ``ransac.check_jump_trans`` or ``ransac.check_jump_rot_deg`` and the
+        model fits the prediction better (`_fit_error` at most ``ransac.check_jump_fit`` times the node's). A few
+        feature matches between a shaft's repeated markings move the pose along the shaft by their spacing; the
+        shaft's geometry does not hold it there (its points slide along themselves), but its end no longer meets the
+        model's."""
+        r = self.cfg.ransac
+        if r.check_jump_fit <= 0:
+            return node
+        predicted = self._predicted_pose()
+        jump = inv_T(predicted) @ node.pose
+        if (np.linalg.norm(jump[:3, 3]) <= r.check_jump_trans
+                and rotation_angle_deg(jump[:3, :3]) <= r.check_jump_rot_deg):
+            return node
+        drawn = self.rng.bit_generator.state  # kept, the node leaves the run's random draws as they were
+        steady = self._node(obs, feats, predicted)
+        steady.pose = orthonormalize(self._optimise(steady, []))
+        if self._fit_error(self._model_distances(steady)) <= r.check_jump_fit * self._fit_error(
+                self._model_distances(node)):
+            return steady
+        self.rng.bit_generator.state = drawn
+        return node
 
     def _candidates(self, obs: Observation, feats: Features,
                     last: np.ndarray) -> list[tuple[np.ndarray, list[tuple], int]]:
