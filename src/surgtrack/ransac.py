@@ -190,12 +190,16 @@ def ransac_pose(
     return RansacResult(T=T_full, inliers=inl, n_inliers=n_inl, rmse=float(np.sqrt(np.mean(r[inl] ** 2))))
 
 
+def within(T: np.ndarray, trans: float, rot_deg: float) -> bool:
+    """Whether the 4x4 motion ``T`` is finite, moves at most ``trans`` (m, translation norm) and turns at most
+    ``rot_deg`` degrees."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        return False
+    return bool(np.linalg.norm(T[:3, 3]) <= trans and rotation_angle_deg(T[:3, :3]) <= rot_deg)
+
+
 def plausible(T_prev_to_cur: np.ndarray, cfg: RansacConfig) -> bool:
     """False for a frame-to-frame motion beyond the physical bounds of ``cfg`` (translation norm of the 4x4 motion
     above ``cfg.max_jump_trans`` or rotation above ``cfg.max_jump_rot_deg``) or a non-finite transform."""
-    T = np.asarray(T_prev_to_cur, dtype=np.float64)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        return False
-    if np.linalg.norm(T[:3, 3]) > cfg.max_jump_trans:
-        return False
-    return rotation_angle_deg(T[:3, :3]) <= cfg.max_jump_rot_deg
+    return within(T_prev_to_cur, cfg.max_jump_trans, cfg.max_jump_rot_deg)

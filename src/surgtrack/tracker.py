@@ -39,7 +39,7 @@ from .memory_pool import Keyframe, MemoryPool
 from .model import InstrumentModel
 from .posture_graph import FeatureEdge, GraphNode, optimize_graph
 from .preprocess import Observation, preprocess
-from .ransac import plausible, ransac_pose
+from .ransac import plausible, ransac_pose, within
 from .registration import BackgroundFitter, InstrumentSDF, keep_near
 from .tsdf import View
 
@@ -395,9 +395,7 @@ class SurgTracker:
         if r.check_jump_fit <= 0:
             return node
         predicted = self._predicted_pose()
-        jump = inv_T(predicted) @ node.pose
-        if (np.linalg.norm(jump[:3, 3]) <= r.check_jump_trans
-                and rotation_angle_deg(jump[:3, :3]) <= r.check_jump_rot_deg):
+        if within(inv_T(predicted) @ node.pose, r.check_jump_trans, r.check_jump_rot_deg):
             return node
         drawn = self.rng.bit_generator.state  # kept, the node leaves the run's random draws as they were
         steady = self._node(obs, feats, predicted)
