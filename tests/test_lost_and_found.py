@@ -71,6 +71,7 @@ def test_a_relocalisation_the_model_does_not_fit_is_refused(synth_seq, monkeypat
     seq = open_sequence(synth_seq)
     cfg = _relocalising_every_frame()  # no last-pose candidate: only the one given below
     cfg.failure.relocalise_min_ncc = -1.0  # the fit check alone (the appearance check: the test below)
+    cfg.graph.w_fs = 0.0  # and L_FS, which pulls the model back into the mask, off too: the candidate stays flipped
     frame = seq[4]
 
     def relocalise(candidate_of, max_fit: float) -> tuple[str, np.ndarray | None]:
@@ -170,7 +171,7 @@ def test_a_long_loss_is_relocalised_on_every_few_frames_only(synth_seq, monkeypa
     cfg.failure.relocalise_window, cfg.failure.relocalise_every = 4, 3
     tracker, _ = _lost_after(seq, cfg)
     tried = []
-    monkeypatch.setattr(tracker, "_relocalise", lambda obs, feats: tried.append(tracker.frames_lost))
+    monkeypatch.setattr(tracker, "_relocalise", lambda obs, feats, masked: tried.append(tracker.frames_lost))
     frame = seq[4]
     statuses = [tracker.track(frame, frame.mask).status for _ in range(12)]
     assert statuses == [LOST] * 12

@@ -6,7 +6,7 @@ import numpy as np
 
 from surgtrack.config import GraphConfig
 from surgtrack.geometry import inv_T, make_T, rotation_angle_deg, so3_exp, transform
-from surgtrack.posture_graph import FeatureEdge, GraphNode, default_pairs, optimize_graph
+from surgtrack.posture_graph import FeatureEdge, FreeSpace, GraphNode, default_pairs, optimize_graph
 
 HALF = np.array([0.04, 0.025, 0.015])  # half-extents of the box object, m
 K = np.array([[150.0, 0.0, 79.5], [0.0, 150.0, 59.5], [0.0, 0.0, 1.0]])  # 640x480 intrinsics downscaled x4
@@ -290,3 +290,47 @@ def test_motion_prior_alone_gives_the_prior():
     out = optimize_graph([empty], [], GraphConfig(), priors=[(0, T1)])
     assert np.allclose(out[0], T1, atol=1e-6)
     assert np.allclose(optimize_graph([empty], [], GraphConfig(w_m=0.0), priors=[(0, T1)])[0], T0)
+
+
+def face_on_free_space(occluded: bool) -> tuple[np.ndarray, list[GraphNode], FreeSpace]:
+    """The box seen face-on (only its -z face shows: L_2D leaves a slide within that face free), a node slid 1 cm
+    along the box's long side against a fixed node at the truth, and the frame's free space at 640x480: the face's
+    rectangle as mask, background 0.5 m behind. With ``occluded``, something 0.2 m from the camera covers the
+    pixels the slid box's end would reach."""
+    truth = make_T(np.eye(3), np.array([0.005, -0.004, 0.3]))
+    xyz, nrm = render_box(truth)
+    slid = truth @ make_T(np.eye(3), np.array([0.01, 0.0, 0.0]))
+    nodes = [GraphNode(slid, xyz, nrm, K.copy()), GraphNode(truth, xyz, nrm, K.copy(), fixed=True)]
+    Kf = np.array([[600.0, 0.0, 319.5], [0.0, 600.0, 239.5], [0.0, 0.0, 1.0]])
+    z = truth[2, 3] - HALF[2]
+    v, u = np.mgrid[0:480, 0:640]
+    x, y = (u - Kf[0, 2]) * z / Kf[0, 0] - truth[0, 3], (v - Kf[1, 2]) * z / Kf[1, 1] - truth[1, 3]
+    mask = (np.abs(x) <= HALF[0]) & (np.abs(y) <= HALF[1])
+    depth = np.where(mask, z, 0.5).astype(np.float32)
+    if occluded:
+        depth[(x > HALF[0]) & (x < HALF[0] + 0.02)] = 0.2
+    points = box_surface_points(np.random.default_rng(8), 3000)[0]
+    return truth, nodes, FreeSpace.of(points, mask, depth, Kf, 1500)
+
+
+def test_free_space_pulls_a_slid_pose_back_into_the_mask():
+    """A slide along a flat face moves none of its points off the other frame's surface (L_2D is blind to it),
+    but it moves the box's end over background the frame saw: L_FS pulls it back."""
+    truth, nodes, fs = face_on_free_space(occluded=False)
+    r, _ = fs.residuals(inv_T(truth), GraphConfig())
+    assert np.all(r == 0)  # at the truth every model point lies within the mask
+    assert np.count_nonzero(fs.residuals(inv_T(nodes[0].pose), GraphConfig())[0]) > 100
+    blind = optimize_graph(nodes, [], GraphConfig(w_fs=0.0), free_space=(0, fs))
+    assert np.linalg.norm(blind[0][:3, 3] - truth[:3, 3]) > 0.008
+    out = optimize_graph(nodes, [], GraphConfig(w_fs=1.0, iterations=15), free_space=(0, fs))
+    rot, trans = pose_error(out[0], truth)
+    assert trans < 0.0015 and rot < 0.3
+
+
+def test_free_space_is_not_what_an_occluder_hides():
+    """Where the frame's depth lies in front of the model point (an occluder, a hand), the camera did not see past
+    it: L_FS leaves the slid pose where it is."""
+    truth, nodes, fs = face_on_free_space(occluded=True)
+    assert np.count_nonzero(fs.residuals(inv_T(nodes[0].pose), GraphConfig())[0]) == 0
+    out = optimize_graph(nodes, [], GraphConfig(w_fs=1.0, iterations=15), free_space=(0, fs))
+    assert np.linalg.norm(out[0][:3, 3] - truth[:3, 3]) > 0.008

@@ -7,7 +7,8 @@ poses minimise the energy of eq. 8,
 
 with L_3D the matched-feature distance in the object frame (eq. 9), L_2D the projective point-to-plane distance
 (eq. 10) and L_SDF the signed distance of the current frame's points to the instrument surface (eq. 11), every term
-under the Huber loss rho.
+under the Huber loss rho. Optionally (not in the paper) w_fs L_FS(t): the model's points that the current frame saw
+past, into the background, pulled back inside the frame's mask (`FreeSpace`).
 
 Parametrisation: each node's camera-in-object pose C_i = pose_i^-1 receives a left increment,
 C_i <- exp(delta_i) C_i with delta_i = (rho, phi) and `geometry.se3_exp` (translation rho, rotation exp(phi)); this
@@ -23,6 +24,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from surgtrack.config import GraphConfig
@@ -50,6 +52,67 @@ class FeatureEdge:
     j: int
     p_i: np.ndarray  # (M, 3) in node i's camera frame
     p_j: np.ndarray  # (M, 3) in node j's camera frame
+
+
+@dataclass
+class FreeSpace:
+    """What the current frame saw past the instrument, for L_FS: the model's points (object frame) and, on the
+    frame's pixel grid, the distance to the instrument's mask and the frame's depth."""
+
+    points: np.ndarray  # (N, 3) object frame
+    dist: np.ndarray  # (H, W) pixels to the nearest mask pixel, 0 on the mask
+    depth: np.ndarray  # (H, W) metres, 0 = invalid
+    K: np.ndarray  # 3x3
+
+    @classmethod
+    def of(cls, points: np.ndarray, mask: np.ndarray, depth: np.ndarray, K: np.ndarray, cap: int) -> FreeSpace:
+        """At most ``cap`` of ``points`` (strided) against the frame's ``mask`` and ``depth``."""
+        step = int(np.ceil(len(points) / cap)) if 0 < cap < len(points) else 1
+        dist = cv2.distanceTransform((~np.asarray(mask, dtype=bool)).astype(np.uint8), cv2.DIST_L2, 5)
+        return cls(np.asarray(points[::step], dtype=np.float64), dist, np.asarray(depth, dtype=np.float32),
+                   np.asarray(K, dtype=np.float64))
+
+    def gradient(self, iu: np.ndarray, iv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """d dist / d u and d dist / d v at pixels (iu, iv): central differences, one-sided at the border."""
+        h, w = self.dist.shape
+        u0, u1 = np.maximum(iu - 1, 0), np.minimum(iu + 1, w - 1)
+        v0, v1 = np.maximum(iv - 1, 0), np.minimum(iv + 1, h - 1)
+        du = (self.dist[iv, u1] - self.dist[iv, u0]) / np.maximum(u1 - u0, 1)
+        dv = (self.dist[v1, iu] - self.dist[v0, iu]) / np.maximum(v1 - v0, 1)
+        return du, dv
+
+    def residuals(self, C: np.ndarray, cfg: GraphConfig) -> tuple[np.ndarray, np.ndarray]:
+        """L_FS at the camera-in-object pose C: residuals r (N,) and Jacobians (6, N) on the left increment delta.
+
+        A model point y seen at x = C^-1 y, pixel (u, v), is in free space where the frame's depth there lies more
+        than ``cfg.free_space_tol`` behind it (it saw past the point, not an occluder in front of it) and the pixel
+        is more than ``cfg.free_space_margin`` pixels off the mask; then r = (dist(u, v) - margin) z / f_x, its
+        distance to the mask in metres at the point's depth (z / f_x held constant in the Jacobian), else 0. The
+        increment moves y by -(rho + phi x y) relative to the camera, so dr/d delta = [-g, g x y] with g = d r / d y
+        in the object frame."""
+        T = inv_T(C)
+        R, y = T[:3, :3], self.points
+        x = y @ R.T + T[:3, 3]
+        z = x[:, 2]
+        front = z > 1e-6
+        iz = 1.0 / np.where(front, z, 1.0)
+        (fx, _, cx), (_, fy, cy) = self.K[0], self.K[1]
+        u = fx * x[:, 0] * iz + cx
+        v = fy * x[:, 1] * iz + cy
+        h, w = self.dist.shape
+        iu = np.clip(np.floor(u + 0.5), 0, w - 1).astype(np.int64)
+        iv = np.clip(np.floor(v + 0.5), 0, h - 1).astype(np.int64)
+        ok = front & (u > -0.5) & (u < w - 0.5) & (v > -0.5) & (v < h - 0.5)
+        d = self.depth[iv, iu]
+        ok &= (d > 0) & (d > z + cfg.free_space_tol)  # NaN depth: not seen
+        off = self.dist[iv, iu] - cfg.free_space_margin
+        ok &= off > 0
+        s = z / fx
+        r = np.where(ok, off * s, 0.0)
+        gu, gv = self.gradient(iu, iv)
+        gx = np.stack([gu * fx, gv * fy, -(gu * (u - cx) + gv * (v - cy))], 1) * (iz * s)[:, None]
+        g = np.where(ok[:, None], gx @ R, 0.0)
+        return r, np.concatenate([-g, np.cross(g, y)], 1).T
 
 
 def huber_weight(r: np.ndarray, delta: float) -> np.ndarray:
@@ -313,6 +376,7 @@ def optimize_graph(
     sdf_nodes: Sequence[int] = (),
     pairs_2d: Sequence[tuple[int, int]] | None = None,
     priors: Sequence[tuple[int, np.ndarray]] = (),
+    free_space: tuple[int, FreeSpace] | None = None,
 ) -> list[np.ndarray]:
     """Optimised 4x4 object-to-camera poses of ``nodes`` minimising the energy of eq. 8; fixed nodes are returned
     unchanged.
@@ -329,6 +393,9 @@ def optimize_graph(
       and rotation times ``cfg.prior_lever``) with weight ``cfg.w_m``, worth that many point residuals, along the
       directions the data leave free only (`_null_space_prior`): a roll about a round shaft or a slide along it
       stays at ``pose`` instead of wandering, and the data alone decide every other direction.
+    - Free space (not in the paper): with ``free_space`` = (t, fs), `FreeSpace.residuals` at node t, weight
+      ``cfg.w_fs``: the model may not stand where the frame saw the background (a slide along a shaft moves its end
+      out of the mask).
 
     Every residual goes through the Huber loss with ``cfg.huber_delta``; ``cfg.iterations`` re-weighted Gauss-Newton
     steps are taken (parametrisation in the module docstring). Without a fixed node the gauge is held only by the
@@ -393,6 +460,11 @@ def optimize_graph(
             Js[:, :3] = gr
             _cross(ys, gr, Js[:, 3:])
             ne.add(sdf_ids, Js, r, cfg.w_s * huber_weight(r, hd) * good)
+
+        if free_space is not None and free[free_space[0]] and cfg.w_fs > 0:
+            t, fs = free_space
+            r, J = fs.residuals(C[t], cfg)
+            ne.add(np.array([t]), J[None], r[None], (cfg.w_fs * huber_weight(r, hd) * (r > 0))[None])
 
         for t, prior in priors:
             if free[t] and cfg.w_m > 0:

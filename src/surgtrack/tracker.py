@@ -37,7 +37,7 @@ from .io import Frame
 from .masking import ColourModel, predict_mask, render_depth, search_regions, silhouette_iou
 from .memory_pool import Keyframe, MemoryPool
 from .model import InstrumentModel
-from .posture_graph import FeatureEdge, GraphNode, optimize_graph
+from .posture_graph import FeatureEdge, FreeSpace, GraphNode, optimize_graph
 from .preprocess import Observation, preprocess
 from .ransac import plausible, ransac_pose, within
 from .registration import BackgroundFitter, InstrumentSDF, keep_near
@@ -279,7 +279,7 @@ class SurgTracker:
         feats = self.extractor(obs)
         clock.lap("features")
         if self.lost:  # the candidates are refined by the posture graph as they compete
-            found = self._relocalise(obs, feats)
+            found = self._relocalise(obs, feats, masked=not predicted)
             clock.lap("ransac")
             if found is None:
                 return None
@@ -292,7 +292,7 @@ class SurgTracker:
             pose, edges, inliers = coarse
             node = self._node(obs, feats, orthonormalize(pose))  # chained estimates would drift off SO(3)
             if self.cfg.graph.enabled:
-                node.pose = orthonormalize(self._optimise(node, edges))
+                node.pose = orthonormalize(self._optimise(node, edges, obs=obs))
                 node = self._checked_jump(obs, feats, node)
                 clock.lap("graph")
                 if predicted and self.cfg.preprocess.predicted_mask_remask:
@@ -321,7 +321,7 @@ class SurgTracker:
                 continue
             feats = self.extractor(obs)
             clock.lap("features")
-            found = self._relocalise(obs, feats)
+            found = self._relocalise(obs, feats, masked=False)
             if found is not None:
                 iou = silhouette_iou(self.model_points, found[0].pose, frame.K, region)
                 if iou >= best_iou:
@@ -399,7 +399,7 @@ class SurgTracker:
             return node
         drawn = self.rng.bit_generator.state  # kept, the node leaves the run's random draws as they were
         steady = self._node(obs, feats, predicted)
-        steady.pose = orthonormalize(self._optimise(steady, []))
+        steady.pose = orthonormalize(self._optimise(steady, [], obs=obs))
         if self._fit_error(self._model_distances(steady)) <= r.check_jump_fit * self._fit_error(
                 self._model_distances(node)):
             return steady
@@ -429,17 +429,17 @@ class SurgTracker:
         return cands
 
     def _best_candidate(self, obs: Observation, feats: Features, cands: list[tuple[np.ndarray, list[tuple], int]],
-                        last: np.ndarray) -> tuple[_Node, int] | None:
+                        last: np.ndarray, masked: bool) -> tuple[_Node, int] | None:
         """Refine each candidate (`_refined`) and keep the one the model fits best (`_fit_error`); among equally
         good fits, the one whose appearance agrees best with the keyframes (`_appearance`), then the least motion
         from ``last``. A candidate whose appearance disagrees (NCC below ``failure.relocalise_min_ncc``: the
         geometry fits, the markings do not, as for a round shaft turned end for end) is dropped. Returns the
         winner's node, at its refined pose, and its feature inlier count; without the graph, the first candidate
-        as it came."""
+        as it came. ``masked``: the frame came with its mask (`_refined`)."""
         if not self.cfg.graph.enabled:
             return (self._node(obs, feats, orthonormalize(cands[0][0])), cands[0][2]) if cands else None
         refined = [(c, inliers) for pose, edges, inliers in cands
-                   if (c := self._refined(obs, feats, pose, edges, last)) is not None]
+                   if (c := self._refined(obs, feats, pose, edges, last, masked)) is not None]
         if not refined:
             return None
         # The candidates share the frame's points (camera frame); their intensities are read once.
@@ -459,7 +459,7 @@ class SurgTracker:
         return c.node, inliers
 
     def _refined(self, obs: Observation, feats: Features, pose: np.ndarray, edges: list[tuple],
-                 last: np.ndarray) -> _Candidate | None:
+                 last: np.ndarray, masked: bool) -> _Candidate | None:
         """A re-localisation candidate refined by the posture graph, its motion prior at the candidate itself along
         the directions the frame leaves free (a slide along a shaft, a turn about it stay where the candidate put
         them; a prior at ``last`` would pull them back to where the instrument was before the loss), its appearance
@@ -467,9 +467,11 @@ class SurgTracker:
         ``last`` (a look-alike elsewhere in the image), or when its median point lies further than
         ``failure.relocalise_max_fit`` from the model (median: parts of the instrument the model has not seen yet do
         not count against it): a wrong pose taken here would be tracked on, and its keyframes would spoil the
-        model."""
+        model. L_FS refines the candidate only when the frame came with its ``masked`` instrument: a mask predicted
+        at the pose before the loss, or a colour region, is not where the instrument is, and the background it
+        leaves out is not free space."""
         node = self._node(obs, feats, orthonormalize(pose))
-        node.pose = orthonormalize(self._optimise(node, list(edges), candidate=True))
+        node.pose = orthonormalize(self._optimise(node, list(edges), candidate=True, obs=obs if masked else None))
         motion = inv_T(last) @ node.pose
         if np.linalg.norm(motion[:3, 3]) > self._reach(obs.frame.index):
             return None
@@ -479,14 +481,14 @@ class SurgTracker:
         move = np.linalg.norm(motion[:3, 3]) + 0.1 * np.radians(rotation_angle_deg(motion[:3, :3]))
         return _Candidate(node, self._fit_error(dist), None, move)
 
-    def _relocalise(self, obs: Observation, feats: Features) -> tuple[_Node, int] | None:
+    def _relocalise(self, obs: Observation, feats: Features, masked: bool) -> tuple[_Node, int] | None:
         """Re-localisation after a loss (step 5) against the memory pool and the model; shortly after the loss the
-        last pose competes too."""
+        last pose competes too. ``masked``: the frame came with its mask."""
         last = self.recent[-1].pose
         cands = self._candidates(obs, feats, last)
         if self.cfg.graph.enabled and self.frames_lost <= self.cfg.failure.relocalise_window:
             cands.append((last, [], 0))
-        return self._best_candidate(obs, feats, cands, last)
+        return self._best_candidate(obs, feats, cands, last, masked)
 
     def _relocalisation_due(self) -> bool:
         """Whether to try re-localising this lost frame (step 5): every frame of the first ``relocalise_window``
@@ -517,12 +519,14 @@ class SurgTracker:
         rotation of the instrument and displacement of its origin between consecutive frames."""
         return plausible(inv_T(self.recent[-1].pose) @ pose, self.cfg.ransac)
 
-    def _optimise(self, node: _Node, edges: list, candidate: bool = False) -> np.ndarray:
+    def _optimise(self, node: _Node, edges: list, candidate: bool = False,
+                  obs: Observation | None = None) -> np.ndarray:
         """Posture graph over the current frame, adjacent frames and K memory frames (eqs. 7-11); as in the paper
         (eq. 8) only the current pose xi_t is optimised, the other nodes are held fixed. The motion prior holds
         what the data leave free at the node's starting (coarse) pose, along the directions ``graph.prior_null``
         selects, with weight ``graph.w_m``; for a re-localisation ``candidate``, ``failure.relocalise_prior_null``
-        and ``failure.relocalise_w_m``."""
+        and ``failure.relocalise_w_m``. With ``obs`` and ``graph.w_fs`` set, L_FS keeps the model out of what the
+        frame saw past (`posture_graph.FreeSpace`)."""
         others: list[_Node | Keyframe] = [e[0] for e in edges]
         prior = node.pose.copy()
         for prev in reversed(self.recent):
@@ -544,8 +548,12 @@ class SurgTracker:
         cfg = self.cfg.graph
         if candidate:
             cfg = replace(cfg, prior_null=self.cfg.failure.relocalise_prior_null, w_m=self.cfg.failure.relocalise_w_m)
+        free_space = None
+        if obs is not None and cfg.w_fs > 0 and self.model_points is not None:
+            free_space = (0, FreeSpace.of(self.model_points, obs.mask, obs.frame.depth, obs.K,
+                                          cfg.free_space_points))
         poses = optimize_graph(nodes, graph_edges, cfg, self.sdf if use_sdf else None,
-                               [0] if use_sdf else [], pairs_2d=pairs, priors=[(0, prior)])
+                               [0] if use_sdf else [], pairs_2d=pairs, priors=[(0, prior)], free_space=free_space)
         return poses[0]
 
     def _field_agrees(self, node: _Node) -> bool:
@@ -641,7 +649,7 @@ class SurgTracker:
         if again.n_valid < self.cfg.failure.min_pixels:
             return obs, node
         second = self._node(again, self.extractor(again), node.pose)
-        second.pose = orthonormalize(self._optimise(second, edges))
+        second.pose = orthonormalize(self._optimise(second, edges, obs=again))
         return again, second
 
     def _learn_occluders(self, frame: Frame, pose: np.ndarray) -> None:
