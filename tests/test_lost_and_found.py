@@ -171,7 +171,7 @@ def test_a_long_loss_is_relocalised_on_every_few_frames_only(synth_seq, monkeypa
     cfg.failure.relocalise_window, cfg.failure.relocalise_every = 4, 3
     tracker, _ = _lost_after(seq, cfg)
     tried = []
-    monkeypatch.setattr(tracker, "_relocalise", lambda obs, feats, masked: tried.append(tracker.frames_lost))
+    monkeypatch.setattr(tracker, "_relocalise", lambda obs, feats: tried.append(tracker.frames_lost))
     frame = seq[4]
     statuses = [tracker.track(frame, frame.mask).status for _ in range(12)]
     assert statuses == [LOST] * 12

@@ -279,7 +279,7 @@ class SurgTracker:
         feats = self.extractor(obs)
         clock.lap("features")
         if self.lost:  # the candidates are refined by the posture graph as they compete
-            found = self._relocalise(obs, feats, masked=not predicted)
+            found = self._relocalise(obs, feats)
             clock.lap("ransac")
             if found is None:
                 return None
@@ -321,7 +321,7 @@ class SurgTracker:
                 continue
             feats = self.extractor(obs)
             clock.lap("features")
-            found = self._relocalise(obs, feats, masked=False)
+            found = self._relocalise(obs, feats)
             if found is not None:
                 iou = silhouette_iou(self.model_points, found[0].pose, frame.K, region)
                 if iou >= best_iou:
@@ -429,17 +429,17 @@ class SurgTracker:
         return cands
 
     def _best_candidate(self, obs: Observation, feats: Features, cands: list[tuple[np.ndarray, list[tuple], int]],
-                        last: np.ndarray, masked: bool) -> tuple[_Node, int] | None:
+                        last: np.ndarray) -> tuple[_Node, int] | None:
         """Refine each candidate (`_refined`) and keep the one the model fits best (`_fit_error`); among equally
         good fits, the one whose appearance agrees best with the keyframes (`_appearance`), then the least motion
         from ``last``. A candidate whose appearance disagrees (NCC below ``failure.relocalise_min_ncc``: the
         geometry fits, the markings do not, as for a round shaft turned end for end) is dropped. Returns the
         winner's node, at its refined pose, and its feature inlier count; without the graph, the first candidate
-        as it came. ``masked``: the frame came with its mask (`_refined`)."""
+        as it came."""
         if not self.cfg.graph.enabled:
             return (self._node(obs, feats, orthonormalize(cands[0][0])), cands[0][2]) if cands else None
         refined = [(c, inliers) for pose, edges, inliers in cands
-                   if (c := self._refined(obs, feats, pose, edges, last, masked)) is not None]
+                   if (c := self._refined(obs, feats, pose, edges, last)) is not None]
         if not refined:
             return None
         # The candidates share the frame's points (camera frame); their intensities are read once.
@@ -459,7 +459,7 @@ class SurgTracker:
         return c.node, inliers
 
     def _refined(self, obs: Observation, feats: Features, pose: np.ndarray, edges: list[tuple],
-                 last: np.ndarray, masked: bool) -> _Candidate | None:
+                 last: np.ndarray) -> _Candidate | None:
         """A re-localisation candidate refined by the posture graph, its motion prior at the candidate itself along
         the directions the frame leaves free (a slide along a shaft, a turn about it stay where the candidate put
         them; a prior at ``last`` would pull them back to where the instrument was before the loss), its appearance
@@ -467,11 +467,9 @@ class SurgTracker:
         ``last`` (a look-alike elsewhere in the image), or when its median point lies further than
         ``failure.relocalise_max_fit`` from the model (median: parts of the instrument the model has not seen yet do
         not count against it): a wrong pose taken here would be tracked on, and its keyframes would spoil the
-        model. L_FS refines the candidate only when the frame came with its ``masked`` instrument: a mask predicted
-        at the pose before the loss, or a colour region, is not where the instrument is, and the background it
-        leaves out is not free space."""
+        model."""
         node = self._node(obs, feats, orthonormalize(pose))
-        node.pose = orthonormalize(self._optimise(node, list(edges), candidate=True, obs=obs if masked else None))
+        node.pose = orthonormalize(self._optimise(node, list(edges), candidate=True, obs=obs))
         motion = inv_T(last) @ node.pose
         if np.linalg.norm(motion[:3, 3]) > self._reach(obs.frame.index):
             return None
@@ -481,14 +479,14 @@ class SurgTracker:
         move = np.linalg.norm(motion[:3, 3]) + 0.1 * np.radians(rotation_angle_deg(motion[:3, :3]))
         return _Candidate(node, self._fit_error(dist), None, move)
 
-    def _relocalise(self, obs: Observation, feats: Features, masked: bool) -> tuple[_Node, int] | None:
+    def _relocalise(self, obs: Observation, feats: Features) -> tuple[_Node, int] | None:
         """Re-localisation after a loss (step 5) against the memory pool and the model; shortly after the loss the
-        last pose competes too. ``masked``: the frame came with its mask."""
+        last pose competes too."""
         last = self.recent[-1].pose
         cands = self._candidates(obs, feats, last)
         if self.cfg.graph.enabled and self.frames_lost <= self.cfg.failure.relocalise_window:
             cands.append((last, [], 0))
-        return self._best_candidate(obs, feats, cands, last, masked)
+        return self._best_candidate(obs, feats, cands, last)
 
     def _relocalisation_due(self) -> bool:
         """Whether to try re-localising this lost frame (step 5): every frame of the first ``relocalise_window``
