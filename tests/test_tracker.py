@@ -239,3 +239,32 @@ def test_a_pose_slid_along_the_shaft_loses_to_the_prediction_the_model_fits(synt
     assert tracker.rng.bit_generator.state == drawn  # and the run's random draws are as they were
     cfg.ransac.check_jump_fit = 0.0
     assert tracker._checked_jump(obs, feats, slid) is slid  # the check off
+
+
+def test_free_space_acts_on_frames_that_came_with_their_mask(synth_seq, monkeypatch):
+    """L_FS (graph.w_fs) refines the pose of a frame given with its mask; a frame without one is masked from the
+    model's prediction, whose surroundings are not known to be free, and is refined without it unless
+    graph.free_space_predicted says otherwise."""
+    import surgtrack.tracker as tracker_module
+
+    seq = open_sequence(synth_seq)
+    seen = []
+    graph = tracker_module.optimize_graph
+    monkeypatch.setattr(tracker_module, "optimize_graph",
+                        lambda *a, **k: seen.append(k.get("free_space")) or graph(*a, **k))
+    for predicted_too in (False, True):
+        cfg = TrackerConfig()
+        cfg.sdf.enabled = False
+        cfg.graph.free_space_predicted = predicted_too
+        tracker = SurgTracker(cfg)
+        tracker.register(seq[0], seq[0].mask)
+        seen.clear()
+        assert tracker.track(seq[1], seq[1].mask).status == "tracked"
+        assert seen and all(fs is not None and fs[0] == 0 for fs in seen)
+        seen.clear()
+        assert tracker.track(seq[2], None).status == "tracked"
+        assert seen and all((fs is not None) == predicted_too for fs in seen)
+    cfg.graph.w_fs = 0.0
+    seen.clear()
+    tracker.track(seq[3], seq[3].mask)
+    assert seen and all(fs is None for fs in seen)

@@ -88,6 +88,7 @@ class GraphConfig:
     free_space_tol: float = 0.01  # m: the frame's depth lies this far behind a model point: it saw past the point
     free_space_margin: float = 2.0  # pixels off the mask before L_FS acts (mask edges, mixed depth)
     free_space_points: int = 1500  # model points (strided) that L_FS projects
+    free_space_predicted: bool = False  # L_FS also on frames that came without a mask (predicted masks)
 
 
 @dataclass

@@ -154,6 +154,7 @@ class SurgTracker:
         self.recent: deque[_Node] = deque(maxlen=max(self.cfg.graph.adjacent, 1))
         self.lost = False
         self.frames_lost = 0
+        self.mask_given = True  # the frame being tracked came with its mask (L_FS trusts no other, see _optimise)
         self.sdf: InstrumentSDF | None = None  # the converged field the posture graph uses (L_SDF, eq. 11)
         self.fitter: BackgroundFitter | None = None
         self._field: InstrumentSDF | None = None  # the field refitted in line when there is no background fitter
@@ -237,6 +238,7 @@ class SurgTracker:
     def track(self, frame: Frame, mask: np.ndarray | None = None) -> TrackResult:
         """One tracking step (Stage 2): preprocess, coarse pose (eq. 5), posture graph (eqs. 7-11), memory (eq. 6)."""
         clock = _Clock()
+        self.mask_given = mask is not None
         if self.lost and not self._relocalisation_due():
             return self._lose(clock)
         self._update_sdf()
@@ -524,7 +526,9 @@ class SurgTracker:
         what the data leave free at the node's starting (coarse) pose, along the directions ``graph.prior_null``
         selects, with weight ``graph.w_m``; for a re-localisation ``candidate``, ``failure.relocalise_prior_null``
         and ``failure.relocalise_w_m``. With ``obs`` and ``graph.w_fs`` set, L_FS keeps the model out of what the
-        frame saw past (`posture_graph.FreeSpace`)."""
+        frame saw past (`posture_graph.FreeSpace`), when the frame came with its mask: a mask predicted from the
+        model (or a colour region while lost) leaves out what the model's pose leaves out, and the background beside
+        it is not known to be free (``graph.free_space_predicted`` trusts it all the same)."""
         others: list[_Node | Keyframe] = [e[0] for e in edges]
         prior = node.pose.copy()
         for prev in reversed(self.recent):
@@ -547,7 +551,8 @@ class SurgTracker:
         if candidate:
             cfg = replace(cfg, prior_null=self.cfg.failure.relocalise_prior_null, w_m=self.cfg.failure.relocalise_w_m)
         free_space = None
-        if obs is not None and cfg.w_fs > 0 and self.model_points is not None:
+        if (obs is not None and cfg.w_fs > 0 and self.model_points is not None
+                and (self.mask_given or cfg.free_space_predicted)):
             free_space = (0, FreeSpace.of(self.model_points, obs.mask, obs.frame.depth, obs.K,
                                           cfg.free_space_points))
         poses = optimize_graph(nodes, graph_edges, cfg, self.sdf if use_sdf else None,
