@@ -329,15 +329,17 @@ def test_register_then_track_another_video(synth_seq, second_video, tmp_path):
     assert run.returncode == 0, run.stderr
     video = open_sequence(second_video)
     m = evaluate(out, video)
-    # Measured: ADD-S AUC 99.0 %, ADD AUC 97.1 %, no frame lost (with the field fitted in the background, which
-    # depends on timing: 99.1-99.2 %, 95.5-97.5 %).
+    # Measured: ADD-S AUC 95.1 %, ADD AUC 84.8 %, no frame lost; 99.0 % and 97.1 % without L_FS (graph.w_fs 0). The
+    # first pose is slid along the shaft (below); L_FS takes 2 of its 14 cm back over the video, where parts of the
+    # model come into view beside the mask, and the metrics, aligned at the first frame, count that as error.
     assert m["missing"] == 0
     assert m["add_s_auc"] >= 85, m["add_s_auc"]
     assert m["add_auc"] >= 70, m["add_auc"]
     # Poses are in the model's object frame: through the scan's first-frame alignment to the ground-truth object
     # frame, the first pose of the new video puts the shaft where its ground truth does, where a tracker that
-    # ignored the model would be arbitrarily off. Measured 20 mm across the shaft (and 139 mm slid along it: the
-    # first frame shows a bare stretch of shaft, and FPFH + RANSAC finds such a slide for every seed).
+    # ignored the model would be arbitrarily off. Measured 28 mm across the shaft, 20 mm without L_FS (and 135 mm
+    # slid along it: the first frame shows a bare stretch of shaft, and FPFH + RANSAC finds such a slide for every
+    # seed).
     scan_pose0 = read_poses(scan_dir / "ob_in_cam")[open_sequence(synth_seq).ids[0]]
     across = first_pose_error(synth_seq, scan_pose0, video, read_poses(out / "ob_in_cam")[video.ids[0]])
     assert across < 0.04, across

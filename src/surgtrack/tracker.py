@@ -175,6 +175,7 @@ class SurgTracker:
     def register(self, frame: Frame, mask: np.ndarray) -> np.ndarray:
         """Start tracking on the first frame and its instrument mask; returns the first pose."""
         obs = preprocess(frame, mask, self.cfg.preprocess)
+        self.mask_given = True
         self.colour.learn(frame.rgb, mask)
         if obs.n_valid < self.cfg.failure.min_pixels:
             raise ValueError(
@@ -211,7 +212,7 @@ class SurgTracker:
                 raise ValueError(f"frame {obs.frame.id}: too few instrument points to find the model")
             pose, edges = found[0][0], []
         node = self._node(obs, feats, orthonormalize(pose))
-        node.pose = orthonormalize(self._optimise(node, edges))
+        node.pose = orthonormalize(self._optimise(node, edges, obs=obs))
         if self._confidence(node) < self.cfg.failure.min_global_overlap:
             raise ValueError(f"frame {obs.frame.id}: the model's instrument was not found inside the first mask")
         self.recent.append(node)
