@@ -9,23 +9,14 @@ DATA the rendered sequences of the same names, e.g. ``bench_out/data``.
 
 from __future__ import annotations
 
-import argparse
 import json
-from pathlib import Path
 
 import numpy as np
-
-from surgtrack.io import open_sequence, read_poses
+from result_runs import result_runs
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("results", type=Path)
-    ap.add_argument("data", type=Path)
-    a = ap.parse_args()
-    for out in sorted(p for p in a.results.iterdir() if (p / "track.jsonl").is_file()):
-        seq = open_sequence(a.data / out.name)
-        gt, est = seq.gt_poses(), read_poses(out / "ob_in_cam")
+    for out, _, gt, est in result_runs(__doc__.splitlines()[0], "track.jsonl"):
         status = [json.loads(line) for line in (out / "track.jsonl").read_text().splitlines()]
         ids = [s["frame"] for s in status]
         origin = np.linalg.inv(gt[ids[0]]) @ np.r_[est[ids[0]][:3, 3], 1]  # the tracker's origin, object frame

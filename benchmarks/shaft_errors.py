@@ -12,25 +12,16 @@ the 90th percentile over the frames.
 
 from __future__ import annotations
 
-import argparse
-from pathlib import Path
-
 import numpy as np
+from result_runs import result_runs
 from scipy.spatial.transform import Rotation
 
 from surgtrack.geometry import inv_T
-from surgtrack.io import open_sequence, read_poses
 from surgtrack.metrics import align_first_frame, alignment_anchor, model_points
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("results", type=Path)
-    ap.add_argument("data", type=Path)
-    a = ap.parse_args()
-    for out in sorted(p for p in a.results.iterdir() if (p / "ob_in_cam").is_dir()):
-        seq = open_sequence(a.data / out.name)
-        gt, est = seq.gt_poses(), read_poses(out / "ob_in_cam")
+    for out, seq, gt, est in result_runs(__doc__.splitlines()[0], "ob_in_cam"):
         ids = [i for i in seq.ids if i in gt and i in est]
         anchor = alignment_anchor(est, gt, ids)
         aligned = align_first_frame(est, est[anchor], gt[anchor])

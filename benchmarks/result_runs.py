@@ -1,0 +1,25 @@
+"""The command line the result-reading benchmark scripts share: RESULTS (one result folder a sequence) and DATA
+(the rendered sequences of the same names)."""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from surgtrack.io import Sequence, open_sequence, read_poses
+
+
+def result_runs(description: str, marker: str) -> Iterator[tuple[Path, Sequence, dict[str, np.ndarray],
+                                                               dict[str, np.ndarray]]]:
+    """Parse RESULTS and DATA from the command line; yield each result folder holding ``marker``, its sequence,
+    the ground-truth poses and the tracked ones."""
+    ap = argparse.ArgumentParser(description=description)
+    ap.add_argument("results", type=Path)
+    ap.add_argument("data", type=Path)
+    a = ap.parse_args()
+    for out in sorted(p for p in a.results.iterdir() if (p / marker).exists()):
+        seq = open_sequence(a.data / out.name)
+        yield out, seq, seq.gt_poses(), read_poses(out / "ob_in_cam")
