@@ -7,6 +7,7 @@ import numpy as np
 from surgtrack.config import GraphConfig
 from surgtrack.geometry import inv_T, make_T, rotation_angle_deg, so3_exp, transform
 from surgtrack.posture_graph import FeatureEdge, FreeSpace, GraphNode, default_pairs, optimize_graph
+from surgtrack.preprocess import mask_distance
 
 HALF = np.array([0.04, 0.025, 0.015])  # half-extents of the box object, m
 K = np.array([[150.0, 0.0, 79.5], [0.0, 150.0, 59.5], [0.0, 0.0, 1.0]])  # 640x480 intrinsics downscaled x4
@@ -310,7 +311,7 @@ def face_on_free_space(occluded: bool) -> tuple[np.ndarray, list[GraphNode], Fre
     if occluded:
         depth[(x > HALF[0]) & (x < HALF[0] + 0.02)] = 0.2
     points = box_surface_points(np.random.default_rng(8), 3000)[0]
-    return truth, nodes, FreeSpace.of(points, mask, depth, Kf, 1500)
+    return truth, nodes, FreeSpace.of(points, mask_distance(mask), depth, Kf, 1500)
 
 
 def test_free_space_pulls_a_slid_pose_back_into_the_mask():

@@ -24,11 +24,10 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from surgtrack.config import GraphConfig
-from surgtrack.geometry import inv_T, se3_exp, so3_log
+from surgtrack.geometry import inv_T, project, se3_exp, so3_log
 
 SDFFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
@@ -65,10 +64,10 @@ class FreeSpace:
     K: np.ndarray  # 3x3
 
     @classmethod
-    def of(cls, points: np.ndarray, mask: np.ndarray, depth: np.ndarray, K: np.ndarray, cap: int) -> FreeSpace:
-        """At most ``cap`` of ``points`` (strided) against the frame's ``mask`` and ``depth``."""
+    def of(cls, points: np.ndarray, dist: np.ndarray, depth: np.ndarray, K: np.ndarray, cap: int) -> FreeSpace:
+        """At most ``cap`` of ``points`` (strided) against the frame's distance to its mask
+        (`preprocess.mask_distance`) and its ``depth``."""
         step = int(np.ceil(len(points) / cap)) if 0 < cap < len(points) else 1
-        dist = cv2.distanceTransform((~np.asarray(mask, dtype=bool)).astype(np.uint8), cv2.DIST_L2, 5)
         return cls(np.asarray(points[::step], dtype=np.float64), dist, np.asarray(depth, dtype=np.float32),
                    np.asarray(K, dtype=np.float64))
 
@@ -93,12 +92,10 @@ class FreeSpace:
         T = inv_T(C)
         R, y = T[:3, :3], self.points
         x = y @ R.T + T[:3, 3]
-        z = x[:, 2]
+        (u, v), z = project(x, self.K)[0].T, x[:, 2]
         front = z > 1e-6
         iz = 1.0 / np.where(front, z, 1.0)
         (fx, _, cx), (_, fy, cy) = self.K[0], self.K[1]
-        u = fx * x[:, 0] * iz + cx
-        v = fy * x[:, 1] * iz + cy
         h, w = self.dist.shape
         iu = np.clip(np.floor(u + 0.5), 0, w - 1).astype(np.int64)
         iv = np.clip(np.floor(v + 0.5), 0, h - 1).astype(np.int64)

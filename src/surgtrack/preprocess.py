@@ -7,6 +7,7 @@ not the image size.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -34,6 +35,11 @@ class Observation:
     @property
     def n_valid(self) -> int:
         return int(self.valid.sum())
+
+    @cached_property
+    def mask_distance(self) -> np.ndarray:
+        """`mask_distance` of the mask, computed once: every posture graph solve of the frame reads it (L_FS)."""
+        return mask_distance(self.mask)
 
     def points(self) -> tuple[np.ndarray, np.ndarray]:
         """The masked point cloud and its normals, camera frame."""
@@ -73,6 +79,11 @@ def normals_from_xyz(xyz: np.ndarray, step: int = 2) -> np.ndarray:
     flip = np.sum(n * xyz, axis=-1) > 0
     n[flip] *= -1
     return n
+
+
+def mask_distance(mask: np.ndarray) -> np.ndarray:
+    """(H, W) float32 distance in pixels from each pixel to the nearest pixel of ``mask`` (0 on it)."""
+    return cv2.distanceTransform((~np.asarray(mask, dtype=bool)).astype(np.uint8), cv2.DIST_L2, 5)
 
 
 def preprocess(frame: Frame, mask: np.ndarray, cfg: PreprocessConfig) -> Observation:
