@@ -92,7 +92,8 @@ class FreeSpace:
         T = inv_T(C)
         R, y = T[:3, :3], self.points
         x = y @ R.T + T[:3, 3]
-        (u, v), z = project(x, self.K)[0].T, x[:, 2]
+        uv, z = project(x, self.K)
+        u, v = uv.T
         front = z > 1e-6
         iz = 1.0 / np.where(front, z, 1.0)
         (fx, _, cx), (_, fy, cy) = self.K[0], self.K[1]

@@ -27,6 +27,7 @@ class Observation:
     normals: np.ndarray  # (H, W, 3) camera-frame unit normals (0 where unknown)
     valid: np.ndarray  # (H, W) bool: instrument pixel with trusted depth and normal
     mask: np.ndarray  # (H, W) bool: the instrument mask used (before depth checks)
+    mask_given: bool = True  # the mask came with the frame (False: predicted from the model or a colour region)
 
     @property
     def K(self) -> np.ndarray:
@@ -86,8 +87,9 @@ def mask_distance(mask: np.ndarray) -> np.ndarray:
     return cv2.distanceTransform((~np.asarray(mask, dtype=bool)).astype(np.uint8), cv2.DIST_L2, 5)
 
 
-def preprocess(frame: Frame, mask: np.ndarray, cfg: PreprocessConfig) -> Observation:
-    """Filter depth, compute normals and keep instrument pixels with trustworthy geometry."""
+def preprocess(frame: Frame, mask: np.ndarray, cfg: PreprocessConfig, mask_given: bool = True) -> Observation:
+    """Filter depth, compute normals and keep instrument pixels with trustworthy geometry; ``mask_given`` says
+    whether ``mask`` came with the frame."""
     h, w = frame.depth.shape
     xyz = np.zeros((h, w, 3), np.float32)
     normals = np.zeros((h, w, 3), np.float32)
@@ -125,4 +127,4 @@ def preprocess(frame: Frame, mask: np.ndarray, cfg: PreprocessConfig) -> Observa
         xyz[rs, cs] = p
         normals[rs, cs] = n
         valid[rs, cs] = ok
-    return Observation(frame, depth, xyz, normals, valid, mask)
+    return Observation(frame, depth, xyz, normals, valid, mask, mask_given)

@@ -154,7 +154,6 @@ class SurgTracker:
         self.recent: deque[_Node] = deque(maxlen=max(self.cfg.graph.adjacent, 1))
         self.lost = False
         self.frames_lost = 0
-        self.mask_given = True  # the frame being tracked came with its mask (L_FS trusts no other, see _optimise)
         self.sdf: InstrumentSDF | None = None  # the converged field the posture graph uses (L_SDF, eq. 11)
         self.fitter: BackgroundFitter | None = None
         self._field: InstrumentSDF | None = None  # the field refitted in line when there is no background fitter
@@ -175,7 +174,6 @@ class SurgTracker:
     def register(self, frame: Frame, mask: np.ndarray) -> np.ndarray:
         """Start tracking on the first frame and its instrument mask; returns the first pose."""
         obs = preprocess(frame, mask, self.cfg.preprocess)
-        self.mask_given = True
         self.colour.learn(frame.rgb, mask)
         if obs.n_valid < self.cfg.failure.min_pixels:
             raise ValueError(
@@ -239,7 +237,6 @@ class SurgTracker:
     def track(self, frame: Frame, mask: np.ndarray | None = None) -> TrackResult:
         """One tracking step (Stage 2): preprocess, coarse pose (eq. 5), posture graph (eqs. 7-11), memory (eq. 6)."""
         clock = _Clock()
-        self.mask_given = mask is not None
         if self.lost and not self._relocalisation_due():
             return self._lose(clock)
         self._update_sdf()
@@ -275,7 +272,7 @@ class SurgTracker:
         predicted = mask is None
         if predicted:
             mask = self._predicted_mask(frame, self.recent[-1].pose)
-        obs = preprocess(frame, mask, self.cfg.preprocess)
+        obs = preprocess(frame, mask, self.cfg.preprocess, mask_given=not predicted)
         clock.lap("preprocess")
         if obs.n_valid < self.cfg.failure.min_pixels:
             return None
@@ -318,7 +315,7 @@ class SurgTracker:
         clock.lap("preprocess")
         best, best_iou = None, f.relocalise_min_iou
         for region in regions:
-            obs = preprocess(frame, region, pre)
+            obs = preprocess(frame, region, pre, mask_given=False)
             clock.lap("preprocess")
             if obs.n_valid < f.min_pixels:
                 continue
@@ -553,7 +550,7 @@ class SurgTracker:
             cfg = replace(cfg, prior_null=self.cfg.failure.relocalise_prior_null, w_m=self.cfg.failure.relocalise_w_m)
         free_space = None
         if (obs is not None and cfg.w_fs > 0 and self.model_points is not None
-                and (self.mask_given or cfg.free_space_predicted)):
+                and (obs.mask_given or cfg.free_space_predicted)):
             free_space = (0, FreeSpace.of(self.model_points, obs.mask_distance, obs.frame.depth, obs.K,
                                           cfg.free_space_points))
         poses = optimize_graph(nodes, graph_edges, cfg, self.sdf if use_sdf else None,
@@ -649,7 +646,8 @@ class SurgTracker:
         """A frame that came without a mask, masked again at its tracked pose and its graph optimised once more
         (eqs. 7-11, the same feature edges): the mask predicted before tracking carries the prediction's error,
         and parts of the instrument it left out pull the pose towards the prediction."""
-        again = preprocess(obs.frame, self._predicted_mask(obs.frame, node.pose), self.cfg.preprocess)
+        again = preprocess(obs.frame, self._predicted_mask(obs.frame, node.pose), self.cfg.preprocess,
+                           mask_given=False)
         if again.n_valid < self.cfg.failure.min_pixels:
             return obs, node
         second = self._node(again, self.extractor(again), node.pose)
