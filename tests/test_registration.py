@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import time
 
 import numpy as np
@@ -337,6 +338,56 @@ def test_background_fitter_never_blocks(sphere_fit) -> None:
         fitter.close()
     with pytest.raises(RuntimeError):
         fitter.submit(views)
+
+
+def test_background_fitter_runs_the_first_fit_in_full(sphere_fit) -> None:
+    """The worker's first fit of an unfitted field runs the field's own iterations, as an in-line first fit does;
+    only the warm-started refits after it are the short ones (a short first fit never reaches a plateau, and an
+    unconverged field never joins the posture graph)."""
+    _, views, _ = sphere_fit
+    start = InstrumentSDF(small_cfg(iterations=40), np.zeros(3), 0.08, device="cpu")
+    fitter = BackgroundFitter(start, iterations=10)
+    try:
+        fitter.submit(views[:8])
+        assert fitter.wait(timeout=120) and fitter.error is None
+        assert len(fitter.last_report["history"]["total"]) == 40
+        fitter.submit(views)
+        assert fitter.wait(timeout=120) and fitter.error is None
+        assert len(fitter.last_report["history"]["total"]) == 10 and fitter.fits_done == 2
+    finally:
+        fitter.close()
+
+
+def test_background_fitter_survives_its_worker(sphere_fit) -> None:
+    """A fitting process that dies is reported through ``error``; the tracker keeps the last field, and its later
+    requests are dropped instead of raising mid-sequence."""
+    _, views, _ = sphere_fit
+    fitter = BackgroundFitter(InstrumentSDF(small_cfg(iterations=20), np.zeros(3), 0.08, device="cpu"), iterations=5)
+    try:
+        fitter.submit(views[:4])
+        assert fitter.wait(timeout=120) and fitter.fits_done == 1 and fitter.error is None
+        first = fitter.latest()
+        fitter._link.process.kill()
+        fitter._link.process.wait()
+        fitter.submit(views)
+        assert fitter.wait(timeout=60)
+        assert isinstance(fitter.error, RuntimeError) and "stopped" in str(fitter.error)
+        assert fitter.latest() is first
+        fitter.submit(views)
+        assert not fitter.busy
+    finally:
+        fitter.close()
+
+
+def test_a_dropped_background_fitter_stops_its_worker(sphere_fit) -> None:
+    """A tracker dropped without closing its fitter does not leave the fitting process behind."""
+    _, views, _ = sphere_fit
+    fitter = BackgroundFitter(InstrumentSDF(small_cfg(iterations=20), np.zeros(3), 0.08, device="cpu"), iterations=5)
+    fitter.submit(views[:4])
+    process = fitter._link.process
+    del fitter
+    gc.collect()
+    assert process.wait(timeout=30) is not None
 
 
 def test_device_selection(monkeypatch) -> None:

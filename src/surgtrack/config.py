@@ -139,7 +139,7 @@ class SDFConfig:
     refit_iterations: int = 60  # Adam steps of a warm-started incremental refit
     min_keyframes: int = 4  # L_SDF joins the posture graph once the field is converged on at least this many
     agree_tol: float = 0.003  # m; L_SDF joins a frame only while its points' median |Psi| is below this (0: always)
-    background: bool = True  # refit on a worker thread (tracking never waits); False refits in line (reproducible)
+    background: bool = True  # refit in a worker process (tracking never waits); False refits in line (reproducible)
     refine_poses: bool = False  # refine the keyframe poses jointly with Psi (first keyframe fixed), within bounds:
     refine_trans: float = 0.005  # m, the most a refined keyframe pose moves from its tracked one (per axis)
     refine_rot_deg: float = 3.0  # degrees, the most it turns (per axis of the rotation vector)

@@ -33,13 +33,17 @@ length, so occluders carve the shape as in a naive system.
 
 from __future__ import annotations
 
-import atexit
 import copy
 import json
+import os
+import subprocess
+import sys
 import threading
 import time
+import weakref
 from collections.abc import Callable
 from dataclasses import asdict, replace
+from multiprocessing.connection import Connection
 from pathlib import Path
 
 import numpy as np
@@ -564,86 +568,157 @@ class InstrumentSDF:
 
 
 class BackgroundFitter:
-    """Refits the Instrument SDF on a worker thread as keyframes arrive; the tracker never waits on it.
+    """Refits the Instrument SDF in a process of its own (`sdf_worker`) as keyframes arrive; the tracker never
+    waits on it.
 
     `submit(views)` hands the current keyframes over and returns at once; a request that arrives while a fit runs
-    replaces any older queued one (only the newest keyframe set is fitted next). Each refit warm-starts from the
-    last completed field (`InstrumentSDF.refit`). `latest()` returns the last completed field, or None, without
-    taking a lock. The tracker must treat that object as read-only; every refit produces a new one.
+    replaces any older queued one (only the newest keyframe set is fitted next). The first fit of an unfitted field
+    runs its ``cfg.iterations``; each later refit warm-starts from the last completed field (`InstrumentSDF.refit`)
+    for ``iterations`` steps (None: ``cfg.iterations`` too). `latest()` returns the last completed field, or None,
+    without taking a lock. The tracker must treat that object as read-only; every refit produces a new one.
 
-    torch's CPU thread pool is process-wide: `num_threads`, when given, calls ``torch.set_num_threads`` for the
-    whole process (1 leaves the other core of a 2-core machine to the tracker; with another busy process on 2 cores,
-    2 OpenMP threads made the fit about 10x slower than 1). On CUDA the GPU does the work.
+    A thread of this process sends the requests and receives the fields; it waits on the pipe, so the fit itself
+    never holds this process's interpreter lock (on a thread it held it for much of each step, and the posture
+    graph waited). ``num_threads`` sets torch's thread count in the worker (1 leaves the other core of a 2-core
+    machine to the tracker). On CUDA the worker's GPU does the work. The worker stops at `close`, when the fitter
+    is dropped, or at interpreter exit.
     """
 
     def __init__(self, sdf: InstrumentSDF, iterations: int | None = None, num_threads: int | None = None):
-        if num_threads is not None:
-            torch.set_num_threads(int(num_threads))
-        self._base = sdf.copy()
-        self._iterations = iterations
-        self._latest: InstrumentSDF | None = sdf if sdf.fitted else None
-        self._pending: list[View] | None = None
-        self._busy = False
-        self._stop = False
-        self._cond = threading.Condition()
-        self.error: BaseException | None = None
-        self.fits_done = 0
-        self.last_report: dict | None = None
-        self._thread = threading.Thread(target=self._run, name="sdf-fitter", daemon=True)
-        self._thread.start()
-        atexit.register(self.close)  # a thread still inside torch when the interpreter exits aborts the process
+        self._link = _WorkerLink((sdf.state_dict(), iterations, num_threads), sdf.device,
+                                 sdf if sdf.fitted else None)
+        self._stop_worker = weakref.finalize(self, self._link.shutdown)
 
     def submit(self, views: list[View]) -> None:
         """Queue a refit on these keyframes (non-blocking)."""
-        with self._cond:
-            if self._stop:
+        link = self._link
+        with link.cond:
+            if link.stop:
                 raise RuntimeError("BackgroundFitter is closed")
-            self._pending = list(views)
-            self._cond.notify_all()
+            if not link.dead:
+                link.pending = list(views)
+            link.cond.notify_all()
 
     def latest(self) -> InstrumentSDF | None:
         """The most recently completed field, or None; never waits."""
-        return self._latest
+        return self._link.latest
 
     @property
     def busy(self) -> bool:
-        return self._busy or self._pending is not None
+        return self._link.busy or self._link.pending is not None
+
+    @property
+    def error(self) -> BaseException | None:
+        """The last fit's failure, or the worker's end when it died; None while all is well."""
+        return self._link.error
+
+    @property
+    def fits_done(self) -> int:
+        return self._link.fits_done
+
+    @property
+    def last_report(self) -> dict | None:
+        """The last completed fit's report (`InstrumentSDF.fit`)."""
+        return self._link.last_report
 
     def wait(self, timeout: float | None = None) -> bool:
         """Block until every submitted request is fitted (for tools and tests, not the tracker); False on timeout."""
-        with self._cond:
-            return self._cond.wait_for(lambda: not self.busy or self._stop, timeout=timeout)
+        link = self._link
+        with link.cond:
+            return link.cond.wait_for(lambda: not self.busy or link.stop or link.dead, timeout=timeout)
 
     def close(self, wait: bool = False) -> None:
         """Stop the worker: after the queued request when `wait`, else at once (a fit in progress is dropped)."""
         if wait:
             self.wait()
-        with self._cond:
-            self._stop = True
-            self._pending = None
-            self._cond.notify_all()
-        self._thread.join()
-        atexit.unregister(self.close)
+        self._stop_worker()
 
-    def _run(self) -> None:
+
+class _WorkerLink:
+    """The worker process of a `BackgroundFitter` and what the fitter shares with the thread that talks to it. The
+    thread holds this, not the fitter, so that a fitter dropped without `close` is collected and its worker
+    stopped."""
+
+    def __init__(self, start: tuple, device: torch.device, latest: InstrumentSDF | None):
+        self.device = device
+        self.latest = latest
+        self.pending: list[View] | None = None
+        self.busy = False
+        self.stop = False  # closed, or the fitter dropped
+        self.dead = False  # the worker is gone
+        self.cond = threading.Condition()
+        self.error: BaseException | None = None
+        self.fits_done = 0
+        self.last_report: dict | None = None
+        self._start: tuple | None = start  # sent by the thread: the worker is still starting
+        worker_in, to_worker = os.pipe()  # (read end, write end)
+        from_worker, worker_out = os.pipe()
+        package_root = str(Path(__file__).resolve().parents[1])  # the worker runs this very copy of surgtrack
+        paths = [package_root, os.environ.get("PYTHONPATH", "")]
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in paths if p)}
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", "surgtrack.sdf_worker", str(worker_in), str(worker_out)],
+            pass_fds=(worker_in, worker_out), env=env,
+        )
+        os.close(worker_in)
+        os.close(worker_out)
+        self.send = Connection(to_worker, readable=False)
+        self.recv = Connection(from_worker, writable=False)
+        self.thread = threading.Thread(target=self.run, name="sdf-fitter", daemon=True)
+        self.thread.start()
+
+    def shutdown(self) -> None:
+        """Stop the worker at once (a fit in progress is dropped) and the thread with it."""
+        with self.cond:
+            self.stop = True
+            self.pending = None
+            self.cond.notify_all()
+        self.process.kill()
+        self.process.wait()
+        if threading.current_thread() is not self.thread:
+            self.thread.join()
+        self.send.close()
+        self.recv.close()
+
+    def run(self) -> None:
+        try:
+            self.send.send(self._start)
+        except OSError as exc:
+            self.died(exc)
+            return
+        self._start = None
         while True:
-            with self._cond:
-                self._cond.wait_for(lambda: self._stop or self._pending is not None)
-                if self._stop:
+            with self.cond:
+                self.cond.wait_for(lambda: self.stop or self.pending is not None)
+                if self.stop:
                     return
-                views, self._pending = self._pending, None
-                self._busy = True
+                views, self.pending = self.pending, None
+                self.busy = True
             try:
-                work = self._base.copy()
-                self.last_report = work.refit(views, self._iterations, stop=lambda: self._stop)
-                if self._stop:
-                    return
-                self._base = work
-                self._latest = work
-                self.fits_done += 1
-            except BaseException as exc:  # noqa: BLE001 - reported through .error, the worker keeps serving
-                self.error = exc
+                self.send.send(views)
+                state, poses, losses, report, error = self.recv.recv()
+                if error is not None:
+                    self.error = error
+                else:
+                    field = InstrumentSDF.from_state_dict(state, device=self.device)
+                    field.refined_poses, field.last_losses = poses, losses
+                    self.last_report = report
+                    self.latest = field
+                    self.fits_done += 1
+            except (EOFError, OSError) as exc:
+                self.died(exc)
+                return
             finally:
-                with self._cond:
-                    self._busy = False
-                    self._cond.notify_all()
+                with self.cond:
+                    self.busy = False
+                    self.cond.notify_all()
+
+    def died(self, exc: BaseException) -> None:
+        """The worker is gone: stopped by `shutdown`, or it died (then reported through ``error``; later requests
+        are dropped and the tracker goes on with the last field)."""
+        with self.cond:
+            if not self.stop:
+                self.error = RuntimeError(f"the SDF fitting process stopped ({exc!r})")
+            self.dead = True
+            self.pending = None
+            self.cond.notify_all()

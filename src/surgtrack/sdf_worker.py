@@ -1,0 +1,50 @@
+"""The process `registration.BackgroundFitter` refits the Instrument SDF in (Stage 1, eqs. 1-4).
+
+A fit is Python-heavy torch work: on a thread of the tracker's process it would hold the interpreter lock for much
+of each Adam step, and the tracker's own Python-heavy steps (the posture graph) would wait on it. In a process of
+its own it only shares the cores. Run as ``python -m surgtrack.sdf_worker READ_FD WRITE_FD``; it reads requests
+from READ_FD and writes results to WRITE_FD, both pickled through `multiprocessing.connection.Connection`:
+
+- first request: ``(state, iterations, num_threads)``, the field's `InstrumentSDF.state_dict` to start from, the
+  Adam steps of a warm-started refit (None: the field's ``cfg.iterations``) and torch's thread count (None: its
+  default);
+- then one request per fit, a list of `tsdf.View`; the answer is ``(state, refined_poses, last_losses, report,
+  None)`` or, when the fit failed, ``(None, None, None, None, error)``. The first fit of an unfitted field runs
+  ``cfg.iterations``, as an in-line first fit does.
+
+It exits when its input closes or when it is terminated; a fit in progress is then dropped.
+"""
+
+from __future__ import annotations
+
+import sys
+from multiprocessing.connection import Connection
+
+import torch
+
+from .registration import InstrumentSDF
+
+
+def serve(conn_in: Connection, conn_out: Connection) -> None:
+    """Fit each request from ``conn_in``, warm-started from the last fit, and answer on ``conn_out``."""
+    state, iterations, num_threads = conn_in.recv()
+    if num_threads is not None:
+        torch.set_num_threads(int(num_threads))
+    field = InstrumentSDF.from_state_dict(state)
+    while True:
+        try:
+            views = conn_in.recv()
+        except EOFError:
+            return
+        try:
+            work = field.copy()
+            report = work.refit(views, iterations if work.fitted else None)
+            field = work
+            answer = (work.state_dict(), work.refined_poses, work.last_losses, report, None)
+        except Exception as exc:  # noqa: BLE001 - sent back as the fitter's error; the process keeps serving
+            answer = (None, None, None, None, RuntimeError(f"SDF fit failed: {type(exc).__name__}: {exc}"))
+        conn_out.send(answer)
+
+
+if __name__ == "__main__":
+    serve(Connection(int(sys.argv[1]), writable=False), Connection(int(sys.argv[2]), readable=False))
