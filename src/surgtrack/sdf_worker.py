@@ -12,11 +12,13 @@ from READ_FD and writes results to WRITE_FD, both pickled through `multiprocessi
   None)`` or, when the fit failed, ``(None, None, None, None, error)``. The first fit of an unfitted field runs
   ``cfg.iterations``, as an in-line first fit does.
 
-It exits when its input closes or when it is terminated; a fit in progress is then dropped.
+It exits when its input closes or when it is terminated; a fit in progress is then dropped. It ignores Ctrl-C,
+which the terminal sends to the tracker and the worker alike: the tracker stops it.
 """
 
 from __future__ import annotations
 
+import signal
 import sys
 from multiprocessing.connection import Connection
 
@@ -47,4 +49,5 @@ def serve(conn_in: Connection, conn_out: Connection) -> None:
 
 
 if __name__ == "__main__":
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     serve(Connection(int(sys.argv[1]), writable=False), Connection(int(sys.argv[2]), readable=False))
