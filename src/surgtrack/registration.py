@@ -41,7 +41,6 @@ import sys
 import threading
 import time
 import weakref
-from collections.abc import Callable
 from dataclasses import asdict, replace
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -238,11 +237,14 @@ class InstrumentSDF:
                                           self.device)
         self._host = None
 
-    def refit(self, views: list[View], iterations: int | None = None,
-              stop: Callable[[], bool] | None = None) -> dict:
-        """Incremental refit: warm start from the current field, TSDF values only where nothing was observed yet."""
+    def refit(self, views: list[View], iterations: int | None = None) -> dict:
+        """Incremental refit: warm start from the current field, TSDF values only where nothing was observed yet,
+        then ``iterations`` Adam steps (None: ``cfg.iterations``). The first fit of an unfitted field (TSDF start)
+        always runs ``cfg.iterations``: a short one is far from a plateau, and an unconverged field stays out of the
+        posture graph."""
         if not self.fitted:
             self.init_tsdf(views)
+            iterations = None
         else:
             c = self.cfg
             psi, weight = fuse_tsdf(self._in_grid(views), self.grid, c.truncation, c.occ_surf, c.occ_dilate,
@@ -250,7 +252,7 @@ class InstrumentSDF:
             new = (self.weight == 0) & (weight > 0)
             self.psi = torch.where(new, psi, self.psi)
             self.weight = torch.maximum(self.weight, weight)
-        return self.fit(views, iterations, stop=stop)
+        return self.fit(views, iterations)
 
     def _sample(self, vol: torch.Tensor, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Trilinear Psi / truncation at object-frame points (N, 3) and a mask of points inside the grid."""
@@ -359,8 +361,7 @@ class InstrumentSDF:
         out["total"] = c.alpha * out["occ"] + c.beta * out["surf"] + c.w_free * out["free"] + c.w_eik * out["eik"]
         return out
 
-    def fit(self, views: list[View], iterations: int | None = None, seed: int = 0,
-            stop: Callable[[], bool] | None = None) -> dict:
+    def fit(self, views: list[View], iterations: int | None = None, seed: int = 0) -> dict:
         """Adam on the grid values with L = alpha L_occ (eq. 2) + beta L_surf (eq. 3) + w_free L_free + w_eik L_eik.
 
         Starts from the current field (call `init_tsdf` first for a fresh fit). Returns the loss history (every
@@ -379,8 +380,6 @@ class InstrumentSDF:
         pose_opt = torch.optim.Adam([corr.xi], lr=self.cfg.refine_lr) if corr is not None else None
         history: dict[str, list[float]] = {k: [] for k in ("total", "surf", "occ", "free", "eik")}
         for _ in range(n_iter):
-            if stop is not None and stop():
-                break
             opt.zero_grad(set_to_none=True)
             if pose_opt is not None:
                 pose_opt.zero_grad(set_to_none=True)
@@ -650,7 +649,6 @@ class _WorkerLink:
         self.error: BaseException | None = None
         self.fits_done = 0
         self.last_report: dict | None = None
-        self._start: tuple | None = start  # sent by the thread: the worker is still starting
         worker_in, to_worker = os.pipe()  # (read end, write end)
         from_worker, worker_out = os.pipe()
         package_root = str(Path(__file__).resolve().parents[1])  # the worker runs this very copy of surgtrack
@@ -664,7 +662,8 @@ class _WorkerLink:
         os.close(worker_out)
         self.send = Connection(to_worker, readable=False)
         self.recv = Connection(from_worker, writable=False)
-        self.thread = threading.Thread(target=self.run, name="sdf-fitter", daemon=True)
+        # the thread sends the start: the worker is still starting, and the pipe holds only 64 kB
+        self.thread = threading.Thread(target=self.run, args=(start,), name="sdf-fitter", daemon=True)
         self.thread.start()
 
     def shutdown(self) -> None:
@@ -680,13 +679,14 @@ class _WorkerLink:
         self.send.close()
         self.recv.close()
 
-    def run(self) -> None:
+    def run(self, start: tuple) -> None:
+        """Send the worker its start, then each request, and take in each field it sends back."""
         try:
-            self.send.send(self._start)
+            self.send.send(start)
         except OSError as exc:
             self.died(exc)
             return
-        self._start = None
+        del start  # the start state (MBs) is not held for the thread's life
         while True:
             with self.cond:
                 self.cond.wait_for(lambda: self.stop or self.pending is not None)

@@ -9,8 +9,8 @@ from READ_FD and writes results to WRITE_FD, both pickled through `multiprocessi
   Adam steps of a warm-started refit (None: the field's ``cfg.iterations``) and torch's thread count (None: its
   default);
 - then one request per fit, a list of `tsdf.View`; the answer is ``(state, refined_poses, last_losses, report,
-  None)`` or, when the fit failed, ``(None, None, None, None, error)``. The first fit of an unfitted field runs
-  ``cfg.iterations``, as an in-line first fit does.
+  None)`` or, when the fit failed, ``(None, None, None, None, error)`` (`InstrumentSDF.refit`: the first fit
+  of an unfitted field runs ``cfg.iterations``).
 
 It exits when its input closes or when it is terminated; a fit in progress is then dropped. It ignores Ctrl-C,
 which the terminal sends to the tracker and the worker alike: the tracker stops it.
@@ -40,7 +40,7 @@ def serve(conn_in: Connection, conn_out: Connection) -> None:
             return
         try:
             work = field.copy()
-            report = work.refit(views, iterations if work.fitted else None)
+            report = work.refit(views, iterations)
             field = work
             answer = (work.state_dict(), work.refined_poses, work.last_losses, report, None)
         except Exception as exc:  # noqa: BLE001 - sent back as the fitter's error; the process keeps serving

@@ -610,7 +610,7 @@ class SurgTracker:
         if self.fitter is not None:
             self.fitter.submit(views)
         elif self._field is not None:
-            self._field.refit(views, self.cfg.sdf.refit_iterations if self._field.fitted else None)
+            self._field.refit(views, self.cfg.sdf.refit_iterations)
 
     def _remember_points(self, kf: Keyframe) -> None:
         pts = transform(inv_T(kf.pose), kf.xyz[kf.xyz[..., 2] > 0])
