@@ -345,7 +345,7 @@ def test_background_fitter_runs_the_first_fit_in_full(sphere_fit) -> None:
     only the warm-started refits after it are the short ones (a short first fit never reaches a plateau, and an
     unconverged field never joins the posture graph)."""
     _, views, _ = sphere_fit
-    start = InstrumentSDF(small_cfg(iterations=40), np.zeros(3), 0.08, device="cpu")
+    start = InstrumentSDF(small_cfg(iterations=40, converge_rounds=0), np.zeros(3), 0.08, device="cpu")
     fitter = BackgroundFitter(start, iterations=10)
     try:
         fitter.submit(views[:8])
@@ -354,6 +354,23 @@ def test_background_fitter_runs_the_first_fit_in_full(sphere_fit) -> None:
         fitter.submit(views)
         assert fitter.wait(timeout=120) and fitter.error is None
         assert len(fitter.last_report["history"]["total"]) == 10 and fitter.fits_done == 2
+    finally:
+        fitter.close()
+
+
+def test_background_fitter_fits_an_unconverged_field_on(sphere_fit) -> None:
+    """The worker goes on fitting the same views while the field has not converged, ``sdf.converge_rounds`` more
+    times at most, before it answers (`InstrumentSDF.refit`'s rounds)."""
+    _, views, _ = sphere_fit
+    cfg = small_cfg(iterations=20, converge_rounds=2, converged_tol=-1.0)  # never converges: every round runs
+    fitter = BackgroundFitter(InstrumentSDF(cfg, np.zeros(3), 0.08, device="cpu"), iterations=10)
+    try:
+        fitter.submit(views[:8])
+        assert fitter.wait(timeout=120) and fitter.error is None
+        assert len(fitter.last_report["history"]["total"]) == 3 * 20 and fitter.fits_done == 1
+        fitter.submit(views)
+        assert fitter.wait(timeout=120) and fitter.error is None
+        assert len(fitter.last_report["history"]["total"]) == 3 * 10
     finally:
         fitter.close()
 
@@ -407,3 +424,42 @@ def test_keep_near_drops_surfaces_away_from_observed_points():
     kept = keep_near(box, seen, 0.01)
     assert len(kept.faces) == 2  # the top face's two triangles
     assert np.allclose(kept.triangles_center[:, 2], 0.05)
+
+
+def test_a_refit_goes_on_until_the_field_converges(sphere_fit) -> None:
+    """``rounds``: a refit of an unconverged field goes on with more fits on the same views, up to ``rounds`` of
+    them, and stops at the first that converges (the background worker passes ``sdf.converge_rounds``)."""
+    _, views, _ = sphere_fit
+    never = InstrumentSDF(small_cfg(iterations=8, converged_tol=-1.0), np.zeros(3), 0.08, device="cpu")
+    report = never.refit(views[:4], 5, rounds=3)
+    assert len(report["history"]["total"]) == 8 + 3 * 8 and not never.converged  # the first fit's own iterations
+    report = never.refit(views, 5, rounds=2)
+    assert len(report["history"]["total"]) == 5 * 3
+    at_once = InstrumentSDF(small_cfg(iterations=20, converged_tol=10.0), np.zeros(3), 0.08, device="cpu")
+    report = at_once.refit(views[:4], 5, rounds=3)  # 20 steps: the least the plateau test judges
+    assert len(report["history"]["total"]) == 20 and at_once.converged
+
+
+def test_a_refit_gathers_only_the_rays_of_views_it_has_not_seen(sphere_fit, monkeypatch) -> None:
+    """The rays of a view (by id, pose and box) are kept from one fit to the next: a refit on mostly the same
+    keyframes gathers only the new ones, and fits exactly as one that gathers every view."""
+    from dataclasses import replace
+
+    from surgtrack import registration
+
+    sdf, views, _ = sphere_fit
+    gathered = []
+    rays_of = registration._rays_of
+    monkeypatch.setattr(registration, "_rays_of", lambda view, *a: gathered.append(view.id) or rays_of(view, *a))
+    named = [replace(v, id=f"kf{i}") for i, v in enumerate(views)]
+    warm = sdf.copy()
+    warm.fit(named[:6], 2)
+    assert gathered == [v.id for v in named[:6]]
+    cold = warm.copy()
+    cold._rays = {}
+    gathered.clear()
+    warm.fit(named[2:], 3)
+    assert gathered == [v.id for v in named[6:]]
+    cold.fit(named[2:], 3)
+    assert gathered[len(named) - 6 :] == [v.id for v in named[2:]]
+    torch.testing.assert_close(warm.psi, cold.psi, rtol=0, atol=0)

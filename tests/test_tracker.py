@@ -268,3 +268,55 @@ def test_free_space_acts_on_frames_that_came_with_their_mask(synth_seq, monkeypa
     seen.clear()
     tracker.track(seq[3], seq[3].mask)
     assert seen and all(fs is None for fs in seen)
+
+
+def test_the_field_is_refitted_as_keyframes_arrive_after_the_pool_is_full(synth_seq, monkeypatch):
+    """sdf.refit_every counts the keyframes added, not the pool's size: a full pool stays full as keyframes come
+    and go, and the field must still be refitted on them."""
+    from surgtrack.memory_pool import MemoryPool
+    from surgtrack.registration import InstrumentSDF
+
+    seq = open_sequence(synth_seq)
+    cfg = TrackerConfig()
+    cfg.sdf.background = False
+    cfg.sdf.iterations, cfg.sdf.refit_iterations, cfg.sdf.refit_every = 4, 2, 2
+    cfg.pool.max_size, cfg.pool.keyframe_rot_deg = 3, 0.5
+    added, refits = [], []  # keyframe ids; the number of keyframes added at each refit
+    add, refit = MemoryPool.add, InstrumentSDF.refit
+
+    def counted_add(pool, kf):
+        added.append(kf.frame_id)
+        add(pool, kf)
+
+    def counted_refit(psi, *args, **kwargs):
+        refits.append(len(added))
+        return refit(psi, *args, **kwargs)
+
+    monkeypatch.setattr(MemoryPool, "add", counted_add)
+    monkeypatch.setattr(InstrumentSDF, "refit", counted_refit)
+    tracker = SurgTracker(cfg)
+    tracker.register(seq[0], seq[0].mask)
+    for frame in list(seq)[1:12]:
+        tracker.track(frame, frame.mask)
+    assert len(added) >= 8 and len(tracker.pool) == 3
+    assert refits == list(range(1, len(added) + 1, 2))  # keyframes 1, 3, 5, ...: on after the pool filled
+
+
+def test_the_background_fit_starts_once_the_pool_holds_its_first_views(synth_seq, monkeypatch):
+    """A background first fit on one keyframe would come back after the pool holds dozens: the first request
+    waits for ``sdf.min_first_views`` keyframes; later ones follow every ``sdf.refit_every`` keyframes."""
+    from surgtrack.registration import BackgroundFitter
+
+    seq = open_sequence(synth_seq)
+    cfg = TrackerConfig()
+    cfg.sdf.min_first_views, cfg.sdf.refit_every = 4, 3
+    cfg.pool.keyframe_rot_deg = 0.5
+    sent = []
+    monkeypatch.setattr(BackgroundFitter, "submit", lambda fitter, views: sent.append(len(views)))
+    tracker = SurgTracker(cfg)
+    tracker.register(seq[0], seq[0].mask)
+    for frame in list(seq)[1:10]:
+        tracker.track(frame, frame.mask)
+    assert len(tracker.pool) >= 7
+    assert sent[:2] == [4, 7]
+    tracker.fitter.close()

@@ -134,9 +134,11 @@ class SDFConfig:
     samples_per_ray: int = 8  # samples in the truncation band per instrument ray, along the box per other ray
     ray_stride: int = 2  # non-instrument pixels are taken on this pixel stride (instrument pixels: all)
     converged_tol: float = 0.05  # converged: the loss fell by less than this fraction over the last quarter of a fit
-    refit_every: int = 3  # keyframes added between background refits
+    refit_every: int = 3  # keyframes added between refits (counted as added: a full pool keeps its size)
     max_views: int = 12  # keyframes (evenly spread over the pool) an incremental refit uses; the final fit uses all
     refit_iterations: int = 60  # Adam steps of a warm-started incremental refit
+    min_first_views: int = 4  # background: the first fit waits for this many keyframes (one view is soon outdone)
+    converge_rounds: int = 8  # background: until the field converges, each fit goes on this many more times at most
     min_keyframes: int = 4  # L_SDF joins the posture graph once the field is converged on at least this many
     agree_tol: float = 0.003  # m; L_SDF joins a frame only while its points' median |Psi| is below this (0: always)
     background: bool = True  # refit in a worker process (tracking never waits); False refits in line (reproducible)

@@ -123,54 +123,63 @@ def _incidence_cos(view: View, floor: float = 0.2) -> np.ndarray:
     return cos
 
 
-def _gather_rays(views: list[View], grid: Grid, cfg: SDFConfig, device: torch.device) -> _Rays:
-    lo, hi = grid.origin, grid.upper
-    surf: dict[str, list[np.ndarray]] = {k: [] for k in ("o", "d", "depth", "znear", "cos", "view")}
-    other: dict[str, list[np.ndarray]] = {k: [] for k in ("o", "d", "depth", "znear", "zfar", "code", "view")}
-    for index, view in enumerate(views):
-        h, w = view.depth.shape
-        codes = classify_pixels(view, cfg.occ_dilate)
-        if not cfg.occ_surf:
-            off_hole = (codes == HOLE) & ~view.mask.astype(bool)
-            codes = np.where(off_hole, EMPTY, codes).astype(np.int8)
-            codes[(codes == HOLE)] = -1  # invalid depth on the mask: no evidence without occlusion handling
-        keep = codes >= 0
-        if cfg.ray_stride > 1:
-            grid_px = np.zeros((h, w), dtype=bool)
-            grid_px[:: cfg.ray_stride, :: cfg.ray_stride] = True
-            keep &= grid_px | (codes == SURF)
-        v, u = np.nonzero(keep)
-        code = codes[v, u]
-        cos_map = _incidence_cos(view)
-        depth = view.depth[v, u].astype(np.float64)
-        Kinv = np.linalg.inv(view.K)
-        cam = np.stack([u, v, np.ones_like(u)], axis=1).astype(np.float64) @ Kinv.T
-        cam /= cam[:, 2:3]
-        T_co = inv_T(view.pose)
-        d = cam @ T_co[:3, :3].T
-        o = np.broadcast_to(T_co[:3, 3], d.shape)
-        t0, t1 = _box_interval(o, d, lo, hi)
-        t0 = np.maximum(t0, 1e-3)
-        is_surf = code == SURF
-        s = is_surf & (depth + cfg.truncation > t0) & (depth - cfg.truncation < t1)
-        r = ~is_surf & (t1 > t0)
-        cos = cos_map[v, u]
-        for key, val in (("o", o[s]), ("d", d[s]), ("depth", depth[s]), ("znear", t0[s]), ("cos", cos[s]),
-                         ("view", np.full(int(s.sum()), index))):
-            surf[key].append(val)
-        for key, val in (("o", o[r]), ("d", d[r]), ("depth", depth[r]), ("znear", t0[r]), ("zfar", t1[r]),
-                         ("code", code[r]), ("view", np.full(int(r.sum()), index))):
-            other[key].append(val)
+_SURF_KEYS = ("o", "d", "depth", "znear", "cos")
+_OTHER_KEYS = ("o", "d", "depth", "znear", "zfar", "code")
+ViewRays = tuple[dict[str, np.ndarray], dict[str, np.ndarray]]
 
-    def cat(parts: dict[str, list[np.ndarray]]) -> dict[str, torch.Tensor]:
+
+def _rays_of(view: View, grid: Grid, cfg: SDFConfig) -> ViewRays:
+    """One view's rays that cross the grid box (grid frame): instrument rays (V_surf) and the others."""
+    lo, hi = grid.origin, grid.upper
+    h, w = view.depth.shape
+    codes = classify_pixels(view, cfg.occ_dilate)
+    if not cfg.occ_surf:
+        off_hole = (codes == HOLE) & ~view.mask.astype(bool)
+        codes = np.where(off_hole, EMPTY, codes).astype(np.int8)
+        codes[(codes == HOLE)] = -1  # invalid depth on the mask: no evidence without occlusion handling
+    keep = codes >= 0
+    if cfg.ray_stride > 1:
+        grid_px = np.zeros((h, w), dtype=bool)
+        grid_px[:: cfg.ray_stride, :: cfg.ray_stride] = True
+        keep &= grid_px | (codes == SURF)
+    v, u = np.nonzero(keep)
+    code = codes[v, u]
+    cos_map = _incidence_cos(view)
+    depth = view.depth[v, u].astype(np.float64)
+    Kinv = np.linalg.inv(view.K)
+    cam = np.stack([u, v, np.ones_like(u)], axis=1).astype(np.float64) @ Kinv.T
+    cam /= cam[:, 2:3]
+    T_co = inv_T(view.pose)
+    d = cam @ T_co[:3, :3].T
+    o = np.broadcast_to(T_co[:3, 3], d.shape)
+    t0, t1 = _box_interval(o, d, lo, hi)
+    t0 = np.maximum(t0, 1e-3)
+    is_surf = code == SURF
+    s = is_surf & (depth + cfg.truncation > t0) & (depth - cfg.truncation < t1)
+    r = ~is_surf & (t1 > t0)
+    cos = cos_map[v, u]
+    surf = dict(zip(_SURF_KEYS, (o[s], d[s], depth[s], t0[s], cos[s]), strict=True))
+    other = dict(zip(_OTHER_KEYS, (o[r], d[r], depth[r], t0[r], t1[r], code[r]), strict=True))
+    small = {key: val.astype(np.int8 if key == "code" else np.float32) for key, val in other.items()}
+    return {key: val.astype(np.float32) for key, val in surf.items()}, small
+
+
+def _gather_rays(per_view: list[ViewRays], device: torch.device) -> _Rays:
+    """The views' rays in one batch on the fitting device, each with its view's index."""
+
+    def cat(parts: list[dict[str, np.ndarray]], keys: tuple[str, ...]) -> dict[str, torch.Tensor]:
         out = {}
-        for key, val in parts.items():
-            arr = np.concatenate(val) if val else np.zeros((0, 3) if key in ("o", "d") else (0,))
+        for key in (*keys, "view"):
+            if key == "view":
+                vals = [np.full(len(p["depth"]), i) for i, p in enumerate(parts)]
+            else:
+                vals = [p[key] for p in parts]
+            arr = np.concatenate(vals) if vals else np.zeros((0, 3) if key in ("o", "d") else (0,))
             dtype = torch.long if key in ("code", "view") else torch.float32
             out[key] = torch.as_tensor(np.ascontiguousarray(arr), device=device, dtype=dtype)
         return out
 
-    return _Rays(cat(surf), cat(other))
+    return _Rays(cat([p[0] for p in per_view], _SURF_KEYS), cat([p[1] for p in per_view], _OTHER_KEYS))
 
 
 def _plateaued(losses: list[float], tol: float) -> bool:
@@ -219,6 +228,7 @@ class InstrumentSDF:
         self.last_losses: dict[str, float] = {}
         self.refined_poses: dict[str, np.ndarray] = {}  # view id -> jointly refined pose (cfg.refine_poses)
         self._host: np.ndarray | None = None
+        self._rays: dict[tuple, ViewRays] = {}  # `_view_rays`' cache
 
     # -- fitting -----------------------------------------------------------------------------------------------
     def _object_from_grid(self) -> np.ndarray:
@@ -237,11 +247,26 @@ class InstrumentSDF:
                                           self.device)
         self._host = None
 
-    def refit(self, views: list[View], iterations: int | None = None) -> dict:
+    def _view_rays(self, views: list[View]) -> list[ViewRays]:
+        """Each view's rays in the grid frame. A view with an id is gathered once per pose and box: its rays are
+        kept until a fit without it (a refit mostly sees the keyframes of the last one, and gathering them costs
+        about a third of a 60-step refit)."""
+        kept, out = {}, []
+        for view in self._in_grid(views):
+            key = (view.id, view.pose.tobytes(), self.grid.origin.tobytes(), self.grid.shape)
+            rays = self._rays.get(key) if view.id else None
+            out.append(rays if rays is not None else _rays_of(view, self.grid, self.cfg))
+            if view.id:
+                kept[key] = out[-1]
+        self._rays = kept
+        return out
+
+    def refit(self, views: list[View], iterations: int | None = None, rounds: int = 0) -> dict:
         """Incremental refit: warm start from the current field, TSDF values only where nothing was observed yet,
         then ``iterations`` Adam steps (None: ``cfg.iterations``). The first fit of an unfitted field (TSDF start)
         always runs ``cfg.iterations``: a short one is far from a plateau, and an unconverged field stays out of the
-        posture graph."""
+        posture graph. While the field has not converged, up to ``rounds`` more fits of ``iterations`` steps follow
+        on the same views (the report merges them)."""
         if not self.fitted:
             self.init_tsdf(views)
             iterations = None
@@ -252,7 +277,15 @@ class InstrumentSDF:
             new = (self.weight == 0) & (weight > 0)
             self.psi = torch.where(new, psi, self.psi)
             self.weight = torch.maximum(self.weight, weight)
-        return self.fit(views, iterations)
+        report = self.fit(views, iterations)
+        for _ in range(rounds):
+            if self.converged:
+                break
+            more = self.fit(views, iterations)
+            more["history"] = {k: report["history"][k] + v for k, v in more["history"].items()}
+            more["seconds"] += report["seconds"]
+            report = more
+        return report
 
     def _sample(self, vol: torch.Tensor, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Trilinear Psi / truncation at object-frame points (N, 3) and a mask of points inside the grid."""
@@ -371,7 +404,7 @@ class InstrumentSDF:
         """
         t0 = time.perf_counter()
         n_iter = self.cfg.iterations if iterations is None else int(iterations)
-        rays = _gather_rays(self._in_grid(views), self.grid, self.cfg, self.device)
+        rays = _gather_rays(self._view_rays(views), self.device)
         gen = torch.Generator(device=self.device)
         gen.manual_seed(seed)
         param = self.psi.detach().clone().requires_grad_(True)
@@ -573,7 +606,9 @@ class BackgroundFitter:
     `submit(views)` hands the current keyframes over and returns at once; a request that arrives while a fit runs
     replaces any older queued one (only the newest keyframe set is fitted next). The first fit of an unfitted field
     runs its ``cfg.iterations``; each later refit warm-starts from the last completed field (`InstrumentSDF.refit`)
-    for ``iterations`` steps (None: ``cfg.iterations`` too). `latest()` returns the last completed field, or None,
+    for ``iterations`` steps (None: ``cfg.iterations`` too). Until the field converges, a fit goes on with the same
+    views for up to ``cfg.converge_rounds`` more (an unconverged field stays out of the posture graph, and the
+    views of each new request would move its plateau away). `latest()` returns the last completed field, or None,
     without taking a lock. The tracker must treat that object as read-only; every refit produces a new one.
 
     A thread of this process sends the requests and receives the fields; it waits on the pipe, so the fit itself

@@ -10,7 +10,8 @@ from READ_FD and writes results to WRITE_FD, both pickled through `multiprocessi
   default);
 - then one request per fit, a list of `tsdf.View`; the answer is ``(state, refined_poses, last_losses, report,
   None)`` or, when the fit failed, ``(None, None, None, None, error)`` (`InstrumentSDF.refit`: the first fit
-  of an unfitted field runs ``cfg.iterations``).
+  of an unfitted field runs ``cfg.iterations``; until the field converges, a fit goes on with the same views for
+  up to ``cfg.converge_rounds`` more).
 
 It exits when its input closes or when it is terminated; a fit in progress is then dropped. It ignores Ctrl-C,
 which the terminal sends to the tracker and the worker alike: the tracker stops it.
@@ -40,7 +41,7 @@ def serve(conn_in: Connection, conn_out: Connection) -> None:
             return
         try:
             work = field.copy()
-            report = work.refit(views, iterations)
+            report = work.refit(views, iterations, work.cfg.converge_rounds)
             field = work
             answer = (work.state_dict(), work.refined_poses, work.last_losses, report, None)
         except Exception as exc:  # noqa: BLE001 - sent back as the fitter's error; the process keeps serving

@@ -157,6 +157,7 @@ class SurgTracker:
         self.sdf: InstrumentSDF | None = None  # the converged field the posture graph uses (L_SDF, eq. 11)
         self.fitter: BackgroundFitter | None = None
         self._field: InstrumentSDF | None = None  # the field refitted in line when there is no background fitter
+        self._keyframes_added = 0  # by this tracker; sets the refit cadence (sdf.refit_every)
         self.model_points: np.ndarray | None = None  # the keyframes' points in the object frame
         self._model_tree: cKDTree | None = None
         self.colour = ColourModel(self.cfg.preprocess.colour_bins, self.cfg.preprocess.colour_ring)
@@ -604,11 +605,13 @@ class SurgTracker:
                       obs.frame.depth, obs.mask, obs.K, image=intensity(obs.frame.rgb))
         self.pool.add(kf)
         self._remember_points(kf)
-        if (len(self.pool) - 1) % self.cfg.sdf.refit_every:
+        self._keyframes_added += 1
+        if (self._keyframes_added - 1) % self.cfg.sdf.refit_every:  # counted, not len(pool): a full pool stays full
             return
         views = self.views(self.cfg.sdf.max_views)
         if self.fitter is not None:
-            self.fitter.submit(views)
+            if len(views) >= self.cfg.sdf.min_first_views:
+                self.fitter.submit(views)
         elif self._field is not None:
             self._field.refit(views, self.cfg.sdf.refit_iterations)
 
