@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import gc
+import os
 import time
 
 import numpy as np
@@ -375,6 +376,19 @@ def test_background_fitter_fits_an_unconverged_field_on(sphere_fit) -> None:
         fitter.close()
 
 
+@pytest.mark.skipif(not hasattr(os, "getpriority"), reason="no process priorities here")
+def test_the_background_fit_runs_at_the_lowest_cpu_priority(sphere_fit) -> None:
+    """The worker yields the cores to tracking: it runs at nice 19 whatever the tracker's own priority."""
+    _, views, _ = sphere_fit
+    fitter = BackgroundFitter(InstrumentSDF(small_cfg(iterations=5), np.zeros(3), 0.08, device="cpu"), iterations=5)
+    try:
+        fitter.submit(views[:4])
+        assert fitter.wait(timeout=120) and fitter.error is None
+        assert os.getpriority(os.PRIO_PROCESS, fitter._link.process.pid) == 19
+    finally:
+        fitter.close()
+
+
 def test_background_fitter_survives_its_worker(sphere_fit) -> None:
     """A fitting process that dies is reported through ``error``; the tracker keeps the last field, and its later
     requests are dropped instead of raising mid-sequence."""
@@ -456,7 +470,7 @@ def test_a_refit_gathers_only_the_rays_of_views_it_has_not_seen(sphere_fit, monk
     warm.fit(named[:6], 2)
     assert gathered == [v.id for v in named[:6]]
     cold = warm.copy()
-    cold._rays = {}
+    cold.forget_rays()
     gathered.clear()
     warm.fit(named[2:], 3)
     assert gathered == [v.id for v in named[6:]]

@@ -141,6 +141,22 @@ def test_a_field_that_disagrees_with_the_frame_stays_out_of_the_graph(synth_seq)
     assert tracker._field_agrees(node)  # off: a converged field always joins
 
 
+def test_the_end_of_run_field_keeps_no_rays(synth_seq):
+    """The end-of-run mesh refits the field on every keyframe; the rays gathered for it (about 1 MB a keyframe)
+    are not kept after it."""
+    seq = open_sequence(synth_seq)
+    cfg = TrackerConfig()
+    cfg.sdf.background = False
+    tracker = SurgTracker(cfg)
+    tracker.register(seq[0], seq[0].mask)
+    for i in range(1, 8):
+        tracker.track(seq[i], seq[i].mask)
+    assert tracker._field._rays  # the in-line refits keep their views' rays
+    mesh = tracker.mesh()
+    assert mesh is not None and len(mesh.faces) > 0
+    assert not tracker._field._rays
+
+
 def test_keyframe_poses_refined_with_the_field_stay_within_bounds(synth_seq, tmp_path):
     """sdf.refine_poses: the keyframes take the poses fitted jointly with Psi, the first fixed, each within the
     bound of its tracked pose, and tracking stays as accurate."""

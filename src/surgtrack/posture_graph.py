@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from surgtrack.config import GraphConfig
-from surgtrack.geometry import inv_T, project, se3_exp, so3_log
+from surgtrack.geometry import inv_T, se3_exp, so3_log
 
 SDFFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
@@ -81,36 +81,37 @@ class FreeSpace:
         return du, dv
 
     def residuals(self, C: np.ndarray, cfg: GraphConfig) -> tuple[np.ndarray, np.ndarray]:
-        """L_FS at the camera-in-object pose C: residuals r (N,) and Jacobians (6, N) on the left increment delta.
+        """L_FS at the camera-in-object pose C: residuals r (M,) and Jacobians (6, M) on the left increment delta,
+        for the M points in free space (every other point's residual is 0).
 
         A model point y seen at x = C^-1 y, pixel (u, v), is in free space where the frame's depth there lies more
         than ``cfg.free_space_tol`` behind it (it saw past the point, not an occluder in front of it) and the pixel
         is more than ``cfg.free_space_margin`` pixels off the mask; then r = (dist(u, v) - margin) z / f_x, its
-        distance to the mask in metres at the point's depth (z / f_x held constant in the Jacobian), else 0. The
+        distance to the mask in metres at the point's depth (z / f_x held constant in the Jacobian). The
         increment moves y by -(rho + phi x y) relative to the camera, so dr/d delta = [-g, g x y] with g = d r / d y
         in the object frame."""
         T = inv_T(C)
-        R, y = T[:3, :3], self.points
-        x = y @ R.T + T[:3, 3]
-        uv, z = project(x, self.K)
-        u, v = uv.T
-        front = z > 1e-6
-        iz = 1.0 / np.where(front, z, 1.0)
+        R = T[:3, :3]
         (fx, _, cx), (_, fy, cy) = self.K[0], self.K[1]
         h, w = self.dist.shape
-        iu = np.clip(np.floor(u + 0.5), 0, w - 1).astype(np.int64)
-        iv = np.clip(np.floor(v + 0.5), 0, h - 1).astype(np.int64)
-        ok = front & (u > -0.5) & (u < w - 0.5) & (v > -0.5) & (v < h - 0.5)
-        d = self.depth[iv, iu]
-        ok &= (d > 0) & (d > z + cfg.free_space_tol)  # NaN depth: not seen
-        off = self.dist[iv, iu] - cfg.free_space_margin
-        ok &= off > 0
+        x = self.points @ R.T + T[:3, 3]
+        k = np.flatnonzero(x[:, 2] > 1e-6)
+        z = x[k, 2]
+        u, v = fx * x[k, 0] / z + cx, fy * x[k, 1] / z + cy
+        iu, iv = np.floor(u + 0.5).astype(np.int64), np.floor(v + 0.5).astype(np.int64)
+        inside = np.flatnonzero((iu >= 0) & (iu < w) & (iv >= 0) & (iv < h))
+        k, z, u, v, iu, iv = k[inside], z[inside], u[inside], v[inside], iu[inside], iv[inside]
+        off = self.dist.ravel()[iv * w + iu] - cfg.free_space_margin
+        d = self.depth.ravel()[iv * w + iu]
+        free = np.flatnonzero((off > 0) & (d > 0) & (d > z + cfg.free_space_tol))  # NaN depth: not seen
+        k, z, u, v, iu, iv, off = k[free], z[free], u[free], v[free], iu[free], iv[free], off[free]
         s = z / fx
-        r = np.where(ok, off * s, 0.0)
         gu, gv = self.gradient(iu, iv)
-        gx = np.stack([gu * fx, gv * fy, -(gu * (u - cx) + gv * (v - cy))], 1) * (iz * s)[:, None]
-        g = np.where(ok[:, None], gx @ R, 0.0)
-        return r, np.concatenate([-g, np.cross(g, y)], 1).T
+        g = R.T @ (np.stack([gu * fx, gv * fy, -(gu * (u - cx) + gv * (v - cy))]) * (s / z))  # (3, M)
+        J = np.empty((6, len(k)))
+        J[:3] = -g
+        _cross(g[None], self.points[k].T[None], J[None, 3:])
+        return off * s, J
 
 
 def huber_weight(r: np.ndarray, delta: float) -> np.ndarray:
@@ -462,7 +463,7 @@ def optimize_graph(
         if free_space is not None and free[free_space[0]] and cfg.w_fs > 0:
             t, fs = free_space
             r, J = fs.residuals(C[t], cfg)
-            ne.add(np.array([t]), J[None], r[None], (cfg.w_fs * huber_weight(r, hd) * (r > 0))[None])
+            ne.add(np.array([t]), J[None], r[None], (cfg.w_fs * huber_weight(r, hd))[None])
 
         for t, prior in priors:
             if free[t] and cfg.w_m > 0:

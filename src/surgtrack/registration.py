@@ -264,6 +264,11 @@ class InstrumentSDF:
         self._rays = kept
         return out
 
+    def forget_rays(self) -> None:
+        """Drop the rays `_view_rays` keeps between fits (about 1 MB a view at 640x480): the next fit gathers every
+        view anew."""
+        self._rays = {}
+
     def refit(self, views: list[View], iterations: int | None = None, rounds: int = 0) -> dict:
         """Incremental refit: warm start from the current field, TSDF values only where nothing was observed yet,
         then ``iterations`` Adam steps (None: ``cfg.iterations``). The first fit of an unfitted field (TSDF start)

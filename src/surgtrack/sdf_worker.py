@@ -14,11 +14,14 @@ from READ_FD and writes results to WRITE_FD, both pickled through `multiprocessi
   up to ``cfg.converge_rounds`` more).
 
 It exits when its input closes or when it is terminated; a fit in progress is then dropped. It ignores Ctrl-C,
-which the terminal sends to the tracker and the worker alike: the tracker stops it.
+which the terminal sends to the tracker and the worker alike: the tracker stops it. It runs at the lowest CPU
+priority (nice 19 where the system has nice): a core the tracker wants is the tracker's, and the fit takes what is
+left.
 """
 
 from __future__ import annotations
 
+import os
 import signal
 import sys
 from multiprocessing.connection import Connection
@@ -51,4 +54,6 @@ def serve(conn_in: Connection, conn_out: Connection) -> None:
 
 if __name__ == "__main__":
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if hasattr(os, "nice"):
+        os.nice(19)
     serve(Connection(int(sys.argv[1]), writable=False), Connection(int(sys.argv[2]), readable=False))

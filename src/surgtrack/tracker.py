@@ -230,6 +230,7 @@ class SurgTracker:
             psi = self.fitter.latest() or psi
         psi = psi.lengthened(*shaft_range(psi, self.model_points))
         psi.refit(self.views())
+        psi.forget_rays()  # every keyframe's (tens of MB); a later fit is a new start
         self._field = psi
         self._refine_keyframes(psi)
         mesh = keep_near(psi.mesh(), self.model_points, 2 * self.cfg.sdf.voxel_size)
