@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from surgtrack.io import ResultWriter
+from surgtrack.config import TrackerConfig
+from surgtrack.io import ResultWriter, Sequence
+from surgtrack.tracker import SurgTracker
 
 SURGTRACK = Path(sys.executable).with_name("surgtrack")
 
@@ -41,3 +43,12 @@ def write_result(out: Path, poses: dict[str, np.ndarray], mesh: trimesh.Trimesh 
         if mesh is not None:
             writer.write_mesh(mesh)
     return out
+
+
+def tracked(seq: Sequence, cfg: TrackerConfig, frames: int) -> SurgTracker:
+    """A tracker registered on the sequence's first frame and run on the next ``frames - 1``, with their masks."""
+    tracker = SurgTracker(cfg)
+    tracker.register(seq[0], seq[0].mask)
+    for i in range(1, frames):
+        tracker.track(seq[i], seq[i].mask)
+    return tracker

@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 import pytest
 import trimesh
-from helpers import assert_one_line_error
+from helpers import assert_one_line_error, tracked
 from helpers import surgtrack as run_surgtrack
 
 from surgtrack.config import TrackerConfig
@@ -40,10 +40,7 @@ def surgtrack(*args: str | Path) -> subprocess.CompletedProcess:
 def scanned(synth_seq: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[InstrumentModel, Path]:
     """A model from the first 10 frames of the fixture sequence, and its file."""
     seq = open_sequence(synth_seq)
-    tracker = SurgTracker(light_config())
-    tracker.register(seq[0], seq[0].mask)
-    for i in range(1, 10):
-        tracker.track(seq[i], seq[i].mask)
+    tracker = tracked(seq, light_config(), 10)
     tracker.mesh()
     model = InstrumentModel.from_tracker(tracker, {"source": str(synth_seq), "frames": 10})
     path = save_model(model, tmp_path_factory.mktemp("model") / "endoscope.stm")

@@ -8,6 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
+from helpers import tracked
 
 from surgtrack.config import TrackerConfig
 from surgtrack.geometry import backproject, depth_to_xyz, make_T, transform
@@ -147,10 +148,7 @@ def test_the_end_of_run_field_keeps_no_rays(synth_seq):
     seq = open_sequence(synth_seq)
     cfg = TrackerConfig()
     cfg.sdf.background = False
-    tracker = SurgTracker(cfg)
-    tracker.register(seq[0], seq[0].mask)
-    for i in range(1, 8):
-        tracker.track(seq[i], seq[i].mask)
+    tracker = tracked(seq, cfg, 8)
     assert tracker._field._rays  # the in-line refits keep their views' rays
     mesh = tracker.mesh()
     assert mesh is not None and len(mesh.faces) > 0
@@ -231,10 +229,7 @@ def test_a_pose_slid_along_the_shaft_loses_to_the_prediction_the_model_fits(synt
     seq = open_sequence(synth_seq)
     cfg = TrackerConfig()
     cfg.sdf.enabled = False
-    tracker = SurgTracker(cfg)
-    tracker.register(seq[0], seq[0].mask)
-    for i in range(1, 6):
-        tracker.track(seq[i], seq[i].mask)
+    tracker = tracked(seq, cfg, 6)
     truth = tracker.track(seq[6], seq[6].mask).pose
     tracker.recent.pop()  # frame 6 again, from frame 5
     obs = preprocess(seq[6], seq[6].mask, cfg.preprocess)
@@ -310,10 +305,7 @@ def test_the_field_is_refitted_as_keyframes_arrive_after_the_pool_is_full(synth_
 
     monkeypatch.setattr(MemoryPool, "add", counted_add)
     monkeypatch.setattr(InstrumentSDF, "refit", counted_refit)
-    tracker = SurgTracker(cfg)
-    tracker.register(seq[0], seq[0].mask)
-    for frame in list(seq)[1:12]:
-        tracker.track(frame, frame.mask)
+    tracker = tracked(seq, cfg, 12)
     assert len(added) >= 8 and len(tracker.pool) == 3
     assert refits == list(range(1, len(added) + 1, 2))  # keyframes 1, 3, 5, ...: on after the pool filled
 
@@ -329,10 +321,7 @@ def test_the_background_fit_starts_once_the_pool_holds_its_first_views(synth_seq
     cfg.pool.keyframe_rot_deg = 0.5
     sent = []
     monkeypatch.setattr(BackgroundFitter, "submit", lambda fitter, views: sent.append(len(views)))
-    tracker = SurgTracker(cfg)
-    tracker.register(seq[0], seq[0].mask)
-    for frame in list(seq)[1:10]:
-        tracker.track(frame, frame.mask)
+    tracker = tracked(seq, cfg, 10)
     assert len(tracker.pool) >= 7
     assert sent[:2] == [4, 7]
     tracker.fitter.close()
