@@ -101,8 +101,8 @@ class FreeSpace:
         iu, iv = np.floor(u + 0.5).astype(np.int64), np.floor(v + 0.5).astype(np.int64)
         inside = np.flatnonzero((iu >= 0) & (iu < w) & (iv >= 0) & (iv < h))
         k, z, u, v, iu, iv = k[inside], z[inside], u[inside], v[inside], iu[inside], iv[inside]
-        off = self.dist.ravel()[iv * w + iu] - cfg.free_space_margin
-        d = self.depth.ravel()[iv * w + iu]
+        px = iv * w + iu
+        off, d = self.dist.ravel()[px] - cfg.free_space_margin, self.depth.ravel()[px]
         free = np.flatnonzero((off > 0) & (d > 0) & (d > z + cfg.free_space_tol))  # NaN depth: not seen
         k, z, u, v, iu, iv, off = k[free], z[free], u[free], v[free], iu[free], iv[free], off[free]
         s = z / fx

@@ -173,10 +173,7 @@ def _gather_rays(per_view: list[ViewRays], device: torch.device) -> _Rays:
     def cat(parts: list[dict[str, np.ndarray]], keys: tuple[str, ...]) -> dict[str, torch.Tensor]:
         out = {}
         for key in (*keys, "view"):
-            if key == "view":
-                vals = [np.full(len(p["depth"]), i) for i, p in enumerate(parts)]
-            else:
-                vals = [p[key] for p in parts]
+            vals = [np.full(len(p["depth"]), i) if key == "view" else p[key] for i, p in enumerate(parts)]
             arr = np.concatenate(vals) if vals else np.zeros((0, 3) if key in ("o", "d") else (0,))
             dtype = torch.long if key in ("code", "view") else torch.float32
             out[key] = torch.as_tensor(np.ascontiguousarray(arr), device=device, dtype=dtype)
