@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from surgtrack.config import GraphConfig
 from surgtrack.geometry import inv_T, make_T, rotation_angle_deg, so3_exp, transform
 from surgtrack.posture_graph import FeatureEdge, FreeSpace, GraphNode, default_pairs, optimize_graph
-from surgtrack.preprocess import mask_distance
+from surgtrack.preprocess import MaskEdge
 
 HALF = np.array([0.04, 0.025, 0.015])  # half-extents of the box object, m
 K = np.array([[150.0, 0.0, 79.5], [0.0, 150.0, 59.5], [0.0, 0.0, 1.0]])  # 640x480 intrinsics downscaled x4
@@ -311,7 +312,29 @@ def face_on_free_space(occluded: bool) -> tuple[np.ndarray, list[GraphNode], Fre
     if occluded:
         depth[(x > HALF[0]) & (x < HALF[0] + 0.02)] = 0.2
     points = box_surface_points(np.random.default_rng(8), 3000)[0]
-    return truth, nodes, FreeSpace.of(points, mask_distance(mask), depth, Kf, 1500)
+    return truth, nodes, FreeSpace.of(points, MaskEdge.of(mask), depth, Kf, 1500)
+
+
+def test_mask_edge_gives_the_exact_distance_to_the_mask_and_its_gradient():
+    """Off the mask, the distance to the nearest edge pixel is the exact Euclidean distance to the mask (the
+    precise distance transform), and its gradient is that distance's slope; with no mask every distance is
+    infinite."""
+    v, u = np.mgrid[0:120, 0:160]
+    mask = (((u - 50) / 30.0) ** 2 + ((v - 60) / 12.0) ** 2 <= 1) | ((u > 90) & (u < 140) & (np.abs(v - u + 40) < 4))
+    edge = MaskEdge.of(mask)
+    exact = cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    off = ~mask
+    dist, _, _ = edge.distance(u[off].astype(float), v[off].astype(float))
+    assert len(edge.uv) < mask.sum() / 3  # the edge, not the whole mask
+    assert np.abs(dist - exact[off]).max() < 1e-3
+    rng = np.random.default_rng(3)
+    pu, pv = rng.uniform(0, 160, 300), rng.uniform(0, 120, 300)
+    d, gu, gv = edge.distance(pu, pv)
+    far = d > 3  # away from the mask, where the nearest pixel does not change within the step
+    h = 1e-4
+    assert np.allclose(gu[far], (edge.distance(pu + h, pv)[0] - edge.distance(pu - h, pv)[0])[far] / (2 * h), atol=1e-4)
+    assert np.allclose(gv[far], (edge.distance(pu, pv + h)[0] - edge.distance(pu, pv - h)[0])[far] / (2 * h), atol=1e-4)
+    assert np.all(np.isinf(MaskEdge.of(np.zeros((8, 8), bool)).distance(pu, pv)[0]))
 
 
 def test_free_space_pulls_a_slid_pose_back_into_the_mask():

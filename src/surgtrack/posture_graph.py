@@ -28,6 +28,7 @@ import numpy as np
 
 from surgtrack.config import GraphConfig
 from surgtrack.geometry import inv_T, se3_exp, so3_log
+from surgtrack.preprocess import MaskEdge
 
 SDFFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
@@ -55,58 +56,51 @@ class FeatureEdge:
 
 @dataclass
 class FreeSpace:
-    """What the current frame saw past the instrument, for L_FS: the model's points (object frame) and, on the
-    frame's pixel grid, the distance to the instrument's mask and the frame's depth."""
+    """What the current frame saw past the instrument, for L_FS: the model's points (object frame), the frame's
+    instrument mask with its edge, and its depth."""
 
     points: np.ndarray  # (N, 3) object frame
-    dist: np.ndarray  # (H, W) pixels to the nearest mask pixel, 0 on the mask
+    edge: MaskEdge  # the frame's mask and its edge pixels
     depth: np.ndarray  # (H, W) metres, 0 = invalid
     K: np.ndarray  # 3x3
 
     @classmethod
-    def of(cls, points: np.ndarray, dist: np.ndarray, depth: np.ndarray, K: np.ndarray, cap: int) -> FreeSpace:
-        """At most ``cap`` of ``points`` (strided) against the frame's distance to its mask
-        (`preprocess.mask_distance`) and its ``depth``."""
+    def of(cls, points: np.ndarray, edge: MaskEdge, depth: np.ndarray, K: np.ndarray, cap: int) -> FreeSpace:
+        """At most ``cap`` of ``points`` (strided) against the frame's mask (`preprocess.MaskEdge`) and its
+        ``depth``."""
         step = int(np.ceil(len(points) / cap)) if 0 < cap < len(points) else 1
-        return cls(np.asarray(points[::step], dtype=np.float64), dist, np.asarray(depth, dtype=np.float32),
+        return cls(np.asarray(points[::step], dtype=np.float64), edge, np.asarray(depth, dtype=np.float32),
                    np.asarray(K, dtype=np.float64))
-
-    def gradient(self, iu: np.ndarray, iv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """d dist / d u and d dist / d v at pixels (iu, iv): central differences, one-sided at the border."""
-        h, w = self.dist.shape
-        u0, u1 = np.maximum(iu - 1, 0), np.minimum(iu + 1, w - 1)
-        v0, v1 = np.maximum(iv - 1, 0), np.minimum(iv + 1, h - 1)
-        du = (self.dist[iv, u1] - self.dist[iv, u0]) / np.maximum(u1 - u0, 1)
-        dv = (self.dist[v1, iu] - self.dist[v0, iu]) / np.maximum(v1 - v0, 1)
-        return du, dv
 
     def residuals(self, C: np.ndarray, cfg: GraphConfig) -> tuple[np.ndarray, np.ndarray]:
         """L_FS at the camera-in-object pose C: residuals r (M,) and Jacobians (6, M) on the left increment delta,
         for the M points in free space (every other point's residual is 0).
 
-        A model point y seen at x = C^-1 y, pixel (u, v), is in free space where the frame's depth there lies more
-        than ``cfg.free_space_tol`` behind it (it saw past the point, not an occluder in front of it) and the pixel
-        is more than ``cfg.free_space_margin`` pixels off the mask; then r = (dist(u, v) - margin) z / f_x, its
-        distance to the mask in metres at the point's depth (z / f_x held constant in the Jacobian). The
-        increment moves y by -(rho + phi x y) relative to the camera, so dr/d delta = [-g, g x y] with g = d r / d y
-        in the object frame."""
-        T = inv_T(C)
-        R = T[:3, :3]
+        A model point y seen at x = C^-1 y, pixel (u, v), is in free space where the frame's depth at that pixel
+        lies more than ``cfg.free_space_tol`` behind it (it saw past the point, not an occluder in front of it) and
+        (u, v) is more than ``cfg.free_space_margin`` pixels from the mask; then r = (dist(u, v) - margin) z / f_x,
+        its distance to the mask in metres at the point's depth (z / f_x held constant in the Jacobian). The
+        increment moves y by -(rho + phi x y) relative to the camera, so dr/d delta = [-g, g x y] with
+        g = d r / d y in the object frame."""
+        R = C[:3, :3].T  # camera from object: x = R (y - t_C)
         (fx, _, cx), (_, fy, cy) = self.K[0], self.K[1]
-        h, w = self.dist.shape
-        x = self.points @ R.T + T[:3, 3]
-        k = np.flatnonzero(x[:, 2] > 1e-6)
-        z = x[k, 2]
-        u, v = fx * x[k, 0] / z + cx, fy * x[k, 1] / z + cy
-        iu, iv = np.floor(u + 0.5).astype(np.int64), np.floor(v + 0.5).astype(np.int64)
-        inside = np.flatnonzero((iu >= 0) & (iu < w) & (iv >= 0) & (iv < h))
-        k, z, u, v, iu, iv = k[inside], z[inside], u[inside], v[inside], iu[inside], iv[inside]
-        px = iv * w + iu
-        off, d = self.dist.ravel()[px] - cfg.free_space_margin, self.depth.ravel()[px]
-        free = np.flatnonzero((off > 0) & (d > 0) & (d > z + cfg.free_space_tol))  # NaN depth: not seen
-        k, z, u, v, iu, iv, off = k[free], z[free], u[free], v[free], iu[free], iv[free], off[free]
+        h, w = self.depth.shape
+        x = (self.points - C[:3, 3]) @ C[:3, :3]
+        z = x[:, 2]
+        zi = 1.0 / np.maximum(z, 1e-6)
+        u, v = fx * x[:, 0] * zi + cx, fy * x[:, 1] * zi + cy
+        k = np.flatnonzero((z > 1e-6) & (u >= -0.5) & (u < w - 0.5) & (v >= -0.5) & (v < h - 0.5))
+        z, u, v = z[k], u[k], v[k]
+        px = (v + 0.5).astype(np.int64) * w + (u + 0.5).astype(np.int64)
+        seen = ~self.edge.mask.ravel()[px] & (self.depth.ravel()[px] > z + cfg.free_space_tol)  # NaN: not seen
+        if not seen.any():
+            return np.zeros(0), np.zeros((6, 0))
+        k, z, u, v = k[seen], z[seen], u[seen], v[seen]
+        dist, gu, gv = self.edge.distance(u, v)
+        free = dist > cfg.free_space_margin
+        k, z, u, v, gu, gv = k[free], z[free], u[free], v[free], gu[free], gv[free]
+        off = dist[free] - cfg.free_space_margin
         s = z / fx
-        gu, gv = self.gradient(iu, iv)
         g = R.T @ (np.stack([gu * fx, gv * fy, -(gu * (u - cx) + gv * (v - cy))]) * (s / z))  # (3, M)
         J = np.empty((6, len(k)))
         J[:3] = -g

@@ -11,6 +11,7 @@ from functools import cached_property
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .config import PreprocessConfig
 from .geometry import depth_to_xyz
@@ -38,9 +39,9 @@ class Observation:
         return int(self.valid.sum())
 
     @cached_property
-    def mask_distance(self) -> np.ndarray:
-        """`mask_distance` of the mask, computed once: every posture graph solve of the frame reads it (L_FS)."""
-        return mask_distance(self.mask)
+    def mask_edge(self) -> MaskEdge:
+        """`MaskEdge` of the mask, built once: every posture graph solve of the frame reads it (L_FS)."""
+        return MaskEdge.of(self.mask)
 
     def points(self) -> tuple[np.ndarray, np.ndarray]:
         """The masked point cloud and its normals, camera frame."""
@@ -82,9 +83,36 @@ def normals_from_xyz(xyz: np.ndarray, step: int = 2) -> np.ndarray:
     return n
 
 
-def mask_distance(mask: np.ndarray) -> np.ndarray:
-    """(H, W) float32 distance in pixels from each pixel to the nearest pixel of ``mask`` (0 on it)."""
-    return cv2.distanceTransform((~np.asarray(mask, dtype=bool)).astype(np.uint8), cv2.DIST_L2, 5)
+@dataclass(frozen=True)
+class MaskEdge:
+    """A mask and its edge pixels (mask pixels with a neighbour off it) in a k-d tree: the mask pixel nearest to a
+    point off the mask is an edge pixel, so distances to the mask cost a query of the edge, not a distance
+    transform of the image."""
+
+    mask: np.ndarray  # (H, W) bool
+    uv: np.ndarray  # (B, 2) edge pixels' (u, v)
+    tree: cKDTree | None  # over uv; None without edge pixels
+
+    @classmethod
+    def of(cls, mask: np.ndarray) -> MaskEdge:
+        mask = np.asarray(mask, dtype=bool)
+        box = mask_bbox(mask, margin=1)
+        if box is None:
+            return cls(mask, np.zeros((0, 2)), None)
+        m = mask[box].astype(np.uint8)
+        rows, cols = np.nonzero(m & ~cv2.erode(m, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE))
+        uv = np.column_stack([cols + box[1].start, rows + box[0].start]).astype(np.float64)
+        return cls(mask, uv, cKDTree(uv) if len(uv) else None)
+
+    def distance(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Distance in pixels from the points (u, v), off the mask, to the nearest mask pixel's centre, and its
+        gradient (d/du, d/dv): the unit vector from that pixel to the point. Infinite without an edge."""
+        if self.tree is None:
+            return np.full(len(u), np.inf), np.zeros(len(u)), np.zeros(len(u))
+        dist, j = self.tree.query(np.column_stack([u, v]))
+        q = self.uv[j]
+        n = np.maximum(dist, 1e-9)
+        return dist, (u - q[:, 0]) / n, (v - q[:, 1]) / n
 
 
 def preprocess(frame: Frame, mask: np.ndarray, cfg: PreprocessConfig, mask_given: bool = True) -> Observation:

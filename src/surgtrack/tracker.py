@@ -553,7 +553,7 @@ class SurgTracker:
         free_space = None
         if (obs is not None and cfg.w_fs > 0 and self.model_points is not None
                 and (obs.mask_given or cfg.free_space_predicted)):
-            free_space = (0, FreeSpace.of(self.model_points, obs.mask_distance, obs.frame.depth, obs.K,
+            free_space = (0, FreeSpace.of(self.model_points, obs.mask_edge, obs.frame.depth, obs.K,
                                           cfg.free_space_points))
         poses = optimize_graph(nodes, graph_edges, cfg, self.sdf if use_sdf else None,
                                [0] if use_sdf else [], pairs_2d=pairs, priors=[(0, prior)], free_space=free_space)

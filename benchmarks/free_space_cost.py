@@ -1,0 +1,81 @@
+"""What L_FS (`posture_graph.FreeSpace`) costs tracking, per frame, measured call by call.
+
+    .venv/bin/python benchmarks/free_space_cost.py DATA [--repeats N]
+
+DATA holds rendered sequences, one folder each (e.g. the ``data/`` folder that ``surgtrack bench --frames 100``
+writes). Each sequence is tracked once with per-frame masks, the SDF off (so the run is the same every time and no
+worker shares the cores), and every L_FS evaluation the posture graph makes is recorded: the frame's mask edge
+(`preprocess.MaskEdge`, built once a frame) and each Gauss-Newton iteration's `FreeSpace.residuals`. Both are then
+replayed ``--repeats`` times and the fastest replay of each is kept, so a drift of the machine's speed, which
+decides a whole-run comparison on a shared machine, barely touches the figure. Prints, per sequence, the L_FS
+calls a frame, microseconds a call, the mask edge's milliseconds a frame and the sum, beside the tracking's own
+milliseconds a frame.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+from surgtrack.config import TrackerConfig
+from surgtrack.io import open_sequence
+from surgtrack.pipeline import track_sequence
+from surgtrack.posture_graph import FreeSpace
+from surgtrack.preprocess import MaskEdge
+
+
+def recorded_calls(seq_root: Path) -> tuple[list, int, float]:
+    """Track the sequence (SDF off) and return its L_FS calls (FreeSpace, C, cfg), frames and seconds."""
+    calls = []
+    residuals = FreeSpace.residuals
+
+    def record(fs: FreeSpace, C, cfg):  # noqa: ANN001, ANN202 - a transparent wrapper
+        calls.append((fs, C.copy(), cfg))
+        return residuals(fs, C, cfg)
+
+    FreeSpace.residuals = record
+    try:
+        with tempfile.TemporaryDirectory() as out:
+            s = track_sequence(open_sequence(seq_root), out, TrackerConfig.from_dict({"sdf": {"enabled": False}}))
+    finally:
+        FreeSpace.residuals = residuals
+    return calls, s.frames, s.seconds
+
+
+def fastest(fn, args: list[tuple], repeats: int) -> float:  # noqa: ANN001 - any callable
+    """The fastest of ``repeats`` timed passes of ``fn(*a)`` over every ``a`` in ``args``, seconds."""
+    best = float("inf")
+    for _ in range(repeats):
+        t = time.perf_counter()
+        for a in args:
+            fn(*a)
+        best = min(best, time.perf_counter() - t)
+    return best
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("data", type=Path)
+    ap.add_argument("--repeats", type=int, default=7)
+    args = ap.parse_args()
+    print(f"{'sequence':<18} {'calls/frame':>11} {'us/call':>8} {'edge ms/frame':>13} {'L_FS ms/frame':>13} "
+          f"{'tracking ms/frame':>17}")
+    totals = [0, 0.0, 0.0, 0.0]
+    for root in sorted(p for p in args.data.iterdir() if p.is_dir()):
+        calls, frames, seconds = recorded_calls(root)
+        masks = list({id(fs.edge): (fs.edge.mask,) for fs, _, _ in calls}.values())
+        t_res = fastest(FreeSpace.residuals, calls, args.repeats)
+        t_edge = fastest(MaskEdge.of, masks, args.repeats)
+        per_call = 1e6 * t_res / max(len(calls), 1)
+        print(f"{root.name:<18} {len(calls) / frames:11.1f} {per_call:8.0f} {1e3 * t_edge / frames:13.2f} "
+              f"{1e3 * (t_res + t_edge) / frames:13.2f} {1e3 * seconds / frames:17.1f}", flush=True)
+        for i, v in enumerate((frames, t_res + t_edge, seconds, len(calls))):
+            totals[i] += v
+    frames, t_fs, seconds, n = totals
+    print(f"{'all':<18} {n / frames:11.1f} {'':>8} {'':>13} {1e3 * t_fs / frames:13.2f} {1e3 * seconds / frames:17.1f}")
+
+
+if __name__ == "__main__":
+    main()
