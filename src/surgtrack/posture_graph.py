@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from surgtrack.config import GraphConfig
-from surgtrack.geometry import inv_T, se3_exp, so3_log
+from surgtrack.geometry import inv_T, project, se3_exp, so3_log
 from surgtrack.preprocess import MaskEdge
 
 SDFFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
@@ -82,13 +82,10 @@ class FreeSpace:
         its distance to the mask in metres at the point's depth (z / f_x held constant in the Jacobian). The
         increment moves y by -(rho + phi x y) relative to the camera, so dr/d delta = [-g, g x y] with
         g = d r / d y in the object frame."""
-        R = C[:3, :3].T  # camera from object: x = R (y - t_C)
         (fx, _, cx), (_, fy, cy) = self.K[0], self.K[1]
         h, w = self.depth.shape
-        x = (self.points - C[:3, 3]) @ C[:3, :3]
-        z = x[:, 2]
-        zi = 1.0 / np.maximum(z, 1e-6)
-        u, v = fx * x[:, 0] * zi + cx, fy * x[:, 1] * zi + cy
+        uv, z = project((self.points - C[:3, 3]) @ C[:3, :3], self.K)  # x = R_C^T (y - t_C)
+        u, v = uv.T
         k = np.flatnonzero((z > 1e-6) & (u >= -0.5) & (u < w - 0.5) & (v >= -0.5) & (v < h - 0.5))
         z, u, v = z[k], u[k], v[k]
         px = (v + 0.5).astype(np.int64) * w + (u + 0.5).astype(np.int64)
@@ -101,7 +98,7 @@ class FreeSpace:
         k, z, u, v, gu, gv = k[free], z[free], u[free], v[free], gu[free], gv[free]
         off = dist[free] - cfg.free_space_margin
         s = z / fx
-        g = R.T @ (np.stack([gu * fx, gv * fy, -(gu * (u - cx) + gv * (v - cy))]) * (s / z))  # (3, M)
+        g = C[:3, :3] @ (np.stack([gu * fx, gv * fy, -(gu * (u - cx) + gv * (v - cy))]) * (s / z))  # (3, M)
         J = np.empty((6, len(k)))
         J[:3] = -g
         _cross(g[None], self.points[k].T[None], J[None, 3:])
