@@ -9,6 +9,9 @@ matrix products so that 2000 hypotheses x 500 matches cost a few milliseconds.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
+from itertools import combinations
+from math import comb
 
 import numpy as np
 
@@ -35,6 +38,22 @@ class RansacResult:
 def _failure(n: int, inliers: np.ndarray | None = None) -> RansacResult:
     mask = np.zeros(n, dtype=bool) if inliers is None else inliers
     return RansacResult(T=None, inliers=mask, n_inliers=int(mask.sum()), rmse=float("inf"))
+
+
+@lru_cache(maxsize=64)
+def _all_triples(n: int) -> np.ndarray:
+    """Every unordered 3-point sample of n matches, (comb(n, 3), 3), read-only (it is shared)."""
+    triples = np.array(list(combinations(range(n), 3)), dtype=np.int64).reshape(-1, 3)
+    triples.setflags(write=False)
+    return triples
+
+
+def _samples(n: int, hypotheses: int, rng: np.random.Generator) -> np.ndarray:
+    """3-point samples (H, 3): every unordered triple when there are at most ``hypotheses`` of them (the search is
+    then exhaustive, and random draws would only repeat triples), else ``hypotheses`` random draws."""
+    if comb(n, 3) <= hypotheses:
+        return _all_triples(n)
+    return rng.integers(0, n, size=(hypotheses, 3))
 
 
 def _triangle_height(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
@@ -118,13 +137,13 @@ def ransac_pose(
 ) -> RansacResult:
     """Robust rigid T with dst ~ T @ src from matched 3D points (paper eq. 5).
 
-    ``cfg.hypotheses`` 3-point samples are drawn; samples whose triangle is lower than ``cfg.min_sample_spread`` in
-    either frame, or whose pairwise distances disagree between frames by more than ``2 * cfg.inlier_dist`` (they cannot
-    all be inliers), are discarded. A match is an inlier when its residual is below ``cfg.inlier_dist`` and, with
-    normals given for both sides, the rotated source normal lies within ``cfg.inlier_normal_deg`` of the destination
-    normal. The hypothesis with most inliers (ties: smallest mean squared inlier residual) is refitted by Kabsch on its
-    inliers ``cfg.refits`` times. Fewer than 3 matches, no valid sample, or fewer than ``cfg.min_inliers`` inliers
-    returns ``T = None``.
+    ``cfg.hypotheses`` 3-point samples are drawn, or every triple when there are no more than that (`_samples`);
+    samples whose triangle is lower than ``cfg.min_sample_spread`` in either frame, or whose pairwise distances
+    disagree between frames by more than ``2 * cfg.inlier_dist`` (they cannot all be inliers), are discarded. A match
+    is an inlier when its residual is below ``cfg.inlier_dist`` and, with normals given for both sides, the rotated
+    source normal lies within ``cfg.inlier_normal_deg`` of the destination normal. The hypothesis with most inliers
+    (ties: smallest mean squared inlier residual) is refitted by Kabsch on its inliers ``cfg.refits`` times. Fewer
+    than 3 matches, no valid sample, or fewer than ``cfg.min_inliers`` inliers returns ``T = None``.
     """
     src = np.asarray(src, dtype=np.float64).reshape(-1, 3)
     dst = np.asarray(dst, dtype=np.float64).reshape(-1, 3)
@@ -146,7 +165,7 @@ def ransac_pose(
     cs0, cd0 = src.mean(axis=0), dst.mean(axis=0)
     s, d = src - cs0, dst - cd0
 
-    idx = rng.integers(0, n, size=(cfg.hypotheses, 3))
+    idx = _samples(n, cfg.hypotheses, rng)
     S, D = s[idx], d[idx]
     valid = (_triangle_height(S[:, 0], S[:, 1], S[:, 2]) >= cfg.min_sample_spread) & (
         _triangle_height(D[:, 0], D[:, 1], D[:, 2]) >= cfg.min_sample_spread
