@@ -41,7 +41,7 @@ class RansacConfig:
     features: str = "sift"  # sift | orb | xfeat
     max_keypoints: int = 800
     ratio_test: float = 0.8  # Lowe ratio for descriptor matching
-    hypotheses: int = 2000
+    hypotheses: int = 2000  # random 3-point samples; every triple instead when there are no more than this
     inlier_dist: float = 0.01  # m
     inlier_normal_deg: float = 20.0
     min_inliers: int = 5
