@@ -121,13 +121,17 @@ class RealSenseSource:
                 raise RealSenseError(f"camera sent no frames for {self.timeout_ms / 1000:.0f} s")
             return frames
         rs = _rs()
-        waited = 0
+        waited, stopped_for = 0, 0
         while waited < self.timeout_ms:
             ok, frames = self._pipeline.try_wait_for_frames(100)
             if ok:
                 return frames
             if self._playback.current_status() == rs.playback_status.stopped:
-                return None
+                # The reader is done, but the last framesets it read can still be on their way through the
+                # pipeline to a slow consumer: the recording has ended once none has come for a while.
+                stopped_for += 100
+                if stopped_for >= min(1000, self.timeout_ms // 2):
+                    return None
             waited += 100
         raise RealSenseError(f"{self.file}: playback stalled for {self.timeout_ms / 1000:.0f} s")
 
