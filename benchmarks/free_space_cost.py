@@ -15,13 +15,10 @@ milliseconds a frame.
 from __future__ import annotations
 
 import argparse
-import tempfile
-import time
 from pathlib import Path
 
-from surgtrack.config import TrackerConfig
-from surgtrack.io import open_sequence
-from surgtrack.pipeline import track_sequence
+from recorded import fastest, sequences, track_recording
+
 from surgtrack.posture_graph import FreeSpace
 from surgtrack.preprocess import MaskEdge
 
@@ -29,30 +26,12 @@ from surgtrack.preprocess import MaskEdge
 def recorded_calls(seq_root: Path) -> tuple[list, int, float]:
     """Track the sequence (SDF off) and return its L_FS calls (FreeSpace, C, cfg), frames and seconds."""
     calls = []
-    residuals = FreeSpace.residuals
 
-    def record(fs: FreeSpace, C, cfg):  # noqa: ANN001, ANN202 - a transparent wrapper
+    def record(residuals, fs, C, cfg):  # noqa: ANN001, ANN202 - a transparent wrapper
         calls.append((fs, C.copy(), cfg))
         return residuals(fs, C, cfg)
 
-    FreeSpace.residuals = record
-    try:
-        with tempfile.TemporaryDirectory() as out:
-            s = track_sequence(open_sequence(seq_root), out, TrackerConfig.from_dict({"sdf": {"enabled": False}}))
-    finally:
-        FreeSpace.residuals = residuals
-    return calls, s.frames, s.seconds
-
-
-def fastest(fn, args: list[tuple], repeats: int) -> float:  # noqa: ANN001 - any callable
-    """The fastest of ``repeats`` timed passes of ``fn(*a)`` over every ``a`` in ``args``, seconds."""
-    best = float("inf")
-    for _ in range(repeats):
-        t = time.perf_counter()
-        for a in args:
-            fn(*a)
-        best = min(best, time.perf_counter() - t)
-    return best
+    return calls, *track_recording(seq_root, FreeSpace, "residuals", record)
 
 
 def main() -> None:
@@ -63,7 +42,7 @@ def main() -> None:
     print(f"{'sequence':<18} {'calls/frame':>11} {'us/call':>8} {'edge ms/frame':>13} {'L_FS ms/frame':>13} "
           f"{'tracking ms/frame':>17}")
     totals = [0, 0.0, 0.0, 0.0]
-    for root in sorted(p for p in args.data.iterdir() if p.is_dir()):
+    for root in sequences(args.data):
         calls, frames, seconds = recorded_calls(root)
         masks = list({id(fs.edge): (fs.edge.mask,) for fs, _, _ in calls}.values())
         t_res = fastest(FreeSpace.residuals, calls, args.repeats)

@@ -6,7 +6,7 @@ DATA holds rendered sequences, one folder each (e.g. the ``data/`` folder that `
 writes). Each sequence is tracked once with per-frame masks and the SDF off, and every `ransac_pose` call the tracker
 makes (the coarse pose, the feature edges of the posture graph, re-localisation) is recorded with its matches and
 the state of the random generator it was given. The calls are then replayed ``--repeats`` times and the fastest
-replay is kept (`free_space_cost.fastest`). With ``--calls FILE`` the recorded calls are written to FILE, or read
+replay is kept (`recorded.fastest`). With ``--calls FILE`` the recorded calls are written to FILE, or read
 from it when it exists, so that two versions of the code can be timed on the same calls. Prints, per sequence, the
 calls a frame, their median number of matches, milliseconds a call and a frame, and the tracking's own
 milliseconds a frame (of the recording run).
@@ -16,36 +16,25 @@ from __future__ import annotations
 
 import argparse
 import pickle
-import tempfile
 from pathlib import Path
 
 import numpy as np
-from free_space_cost import fastest
+from recorded import fastest, sequences, track_recording
 
 import surgtrack.tracker
-from surgtrack.config import TrackerConfig
-from surgtrack.io import open_sequence
-from surgtrack.pipeline import track_sequence
 from surgtrack.ransac import ransac_pose
 
 
 def recorded_calls(seq_root: Path) -> tuple[list, int, float]:
     """Track the sequence (SDF off) and return its `ransac_pose` calls, frames and seconds."""
     calls = []
-    cfg = TrackerConfig.from_dict({"sdf": {"enabled": False}})
 
-    def record(src, dst, rcfg, rng, src_n=None, dst_n=None):  # noqa: ANN001, ANN202 - a transparent wrapper
+    def record(pose, src, dst, rcfg, rng, src_n=None, dst_n=None):  # noqa: ANN001, ANN202 - a transparent wrapper
         calls.append((np.array(src), np.array(dst), rcfg, rng.bit_generator.state,
                       None if src_n is None else np.array(src_n), None if dst_n is None else np.array(dst_n)))
-        return ransac_pose(src, dst, rcfg, rng, src_n, dst_n)
+        return pose(src, dst, rcfg, rng, src_n, dst_n)
 
-    surgtrack.tracker.ransac_pose = record
-    try:
-        with tempfile.TemporaryDirectory() as out:
-            s = track_sequence(open_sequence(seq_root), out, cfg)
-    finally:
-        surgtrack.tracker.ransac_pose = ransac_pose
-    return calls, s.frames, s.seconds
+    return calls, *track_recording(seq_root, surgtrack.tracker, "ransac_pose", record)
 
 
 def replay(src, dst, rcfg, state, src_n, dst_n):  # noqa: ANN001, ANN201 - the recorded arguments
@@ -64,7 +53,7 @@ def main() -> None:
         recorded = pickle.loads(args.calls.read_bytes())
     else:
         recorded = {root.name: recorded_calls(root)
-                    for root in sorted(p for p in args.data.iterdir() if p.is_dir())}
+                    for root in sequences(args.data)}
         if args.calls is not None:
             args.calls.write_bytes(pickle.dumps(recorded))
     print(f"{'sequence':<18} {'calls/frame':>11} {'matches':>7} {'ms/call':>7} {'RANSAC ms/frame':>15} "
@@ -77,7 +66,7 @@ def main() -> None:
               f"{1e3 * t / frames:15.1f} {1e3 * seconds / frames:17.1f}", flush=True)
         totals += (frames, t, seconds, len(calls))
     frames, t, seconds, n = totals
-    print(f"{'all':<18} {n / frames:11.1f} {'':>7} {1e3 * t / n:7.2f} {1e3 * t / frames:15.1f} "
+    print(f"{'all':<18} {n / frames:11.1f} {'':>7} {1e3 * t / max(n, 1):7.2f} {1e3 * t / frames:15.1f} "
           f"{1e3 * seconds / frames:17.1f}")
 
 
