@@ -132,14 +132,60 @@ def test_recording_plays_back_frame_by_frame(recording: Path, synth_seq: Path):
     assert n == len(seq)
 
 
+def _recorded_index(frame: Frame, seq: Sequence) -> tuple[int, int]:
+    """Which recorded frames a played-back frame's colour and depth are."""
+    colour = next(i for i, f in enumerate(seq) if np.array_equal(f.rgb, frame.rgb))
+    depth = int(np.argmin([np.abs(f.depth - frame.depth).mean() for f in seq]))
+    return colour, depth
+
+
+def test_a_stream_that_starts_late_loses_no_frame(recording: Path, synth_seq: Path, monkeypatch: pytest.MonkeyPatch):
+    # On a loaded machine one stream's first frame can reach the reader well after the other stream's first
+    # frames; a pipeline's syncer then passed those on alone or dropped them, and the recording lost its first
+    # frames (and a first-frame mask met another frame's depth).
+    from surgtrack import realsense
+
+    original = realsense._Recording._on_frame
+    first_colour = []
+
+    def late_colour(self, frame):
+        if self._kind[frame.get_profile().unique_id()] == "colour" and not first_colour:
+            first_colour.append(frame.get_frame_number())
+            time.sleep(0.3)
+        original(self, frame)
+
+    monkeypatch.setattr(realsense._Recording, "_on_frame", late_colour)
+    seq = open_sequence(synth_seq)
+    with RealSenseSource(file=recording) as source:
+        played = [_recorded_index(f, seq) for f in source]
+    assert first_colour == [0]
+    assert played == [(i, i) for i in range(len(seq))]
+
+
+def test_frames_one_stream_lacks_are_skipped(recording: Path, synth_seq: Path, monkeypatch: pytest.MonkeyPatch):
+    from surgtrack import realsense
+
+    original = realsense._Recording._on_frame
+    dropped = {("colour", 5), ("depth", 9), ("depth", 10)}
+
+    def lossy(self, frame):
+        if (self._kind[frame.get_profile().unique_id()], frame.get_frame_number()) not in dropped:
+            original(self, frame)
+
+    monkeypatch.setattr(realsense._Recording, "_on_frame", lossy)
+    seq = open_sequence(synth_seq)
+    with RealSenseSource(file=recording) as source:
+        played = [(f.index, *_recorded_index(f, seq)) for f in source]
+    kept = [i for i in range(len(seq)) if i not in (5, 9, 10)]
+    assert played == [(n, i, i) for n, i in enumerate(kept)]
+
+
 def test_forced_alignment_keeps_the_geometry(recording: Path, synth_seq: Path):
     seq = open_sequence(synth_seq)
     with RealSenseSource(file=recording, align=True) as source:
         frame = next(iter(source))
-    # Compare with the recorded frame this one is, by its colour: on a loaded machine the comparison with the
-    # first recorded frame failed once (95th percentile 6 mm, as far as a neighbouring frame's depth).
-    ref = next((f for f in seq if np.array_equal(f.rgb, frame.rgb)), None)
-    assert ref is not None, "the aligned frame's colour is none of the recorded frames'"
+    ref = seq[0]
+    np.testing.assert_array_equal(frame.rgb, ref.rgb)
     both = (frame.depth > 0) & (ref.depth > 0)
     assert both.sum() >= 0.9 * (ref.depth > 0).sum()
     # rs.align re-projects pixel footprints and may move a value by a pixel: compare with the nearest neighbour.
@@ -159,8 +205,12 @@ def test_record_needs_a_db3_file(synth_seq: Path, tmp_path: Path):
 def test_max_frames_records_a_prefix(synth_seq: Path, tmp_path: Path):
     path = tmp_path / "short.db3"
     assert record_sequence(synth_seq, path, max_frames=3) == 3
-    with RealSenseSource(file=path) as source:
-        assert len(list(source)) == 3
+    seq = open_sequence(synth_seq)
+    # Played back again and again: the colour stream's first frames were lost in about one playback in five when
+    # playback started with the first sensor started instead of once both were.
+    for _ in range(10):
+        with RealSenseSource(file=path, timeout_s=0.5) as source:
+            assert [_recorded_index(f, seq) for f in source] == [(0, 0), (1, 1), (2, 2)]
 
 
 # ------------------------------------------------------------------------------------------- box to mask

@@ -13,6 +13,8 @@ intrinsics are the colour stream's. :func:`record_sequence` writes a sequence fo
 
 from __future__ import annotations
 
+import queue
+from collections import deque
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -56,6 +58,134 @@ def _already_aligned(depth_profile, colour_profile) -> bool:
     return np.allclose(ext.rotation, np.eye(3).ravel()) and np.allclose(ext.translation, 0.0)
 
 
+class _Recording:
+    """Every colour and depth frame of a recording, in order, as (colour, depth) pairs.
+
+    The recording's sensors are read directly into one short queue, which playback (not in real time) waits on when
+    it is full, and the two streams are paired here by timestamp, within half a frame period. A pipeline's syncer
+    is not used: it passes one stream's first frames on alone, or drops them, when the other stream's first frame
+    reaches it later, which on a loaded machine lost a recording's first frames.
+    """
+
+    def __init__(self, rs, path: Path, timeout_ms: int):
+        self.path, self.timeout_ms = path, timeout_ms
+        try:
+            self.device = rs.context().load_device(str(path))
+        except RuntimeError as e:
+            raise RealSenseError(f"{path}: cannot open the recording ({e})") from None
+        self._playback = self.device.as_playback()
+        self._playback.set_real_time(False)
+        self.profiles: dict[str, object] = {}
+        self._sensors: list[tuple[object, list]] = []
+        kinds = {rs.stream.color: "colour", rs.stream.depth: "depth"}
+        for sensor in self.device.query_sensors():
+            chosen = []
+            for profile in sensor.get_stream_profiles():
+                kind = kinds.get(profile.stream_type())
+                if kind is not None and kind not in self.profiles:
+                    self.profiles[kind] = profile
+                    chosen.append(profile)
+            if chosen:
+                self._sensors.append((sensor, chosen))
+        missing = [k for k in kinds.values() if k not in self.profiles]
+        if missing:
+            raise RealSenseError(f"{path}: needs a colour and a depth stream (no {' or '.join(missing)} stream)")
+        self._stopped = rs.playback_status.stopped
+        self._queue: queue.Queue = queue.Queue(maxsize=8)
+        self._kind = {p.unique_id(): kind for kind, p in self.profiles.items()}
+        self._running = True
+        try:
+            # Paused until every sensor streams: playback starts with the first sensor started, and the frames it
+            # reads for a sensor not started yet are lost.
+            self._playback.pause()
+            for sensor, profiles in self._sensors:
+                sensor.open(profiles)
+                sensor.start(self._on_frame)
+            self._playback.resume()
+        except RuntimeError as e:
+            self.close()
+            raise RealSenseError(f"{path}: cannot start playback ({e})") from None
+        fps = min(float(p.fps()) for p in self.profiles.values())
+        self.tol_ms = 500.0 / fps if fps > 0 else 1.0
+
+    def _on_frame(self, frame) -> None:
+        kind = self._kind[frame.get_profile().unique_id()]
+        while self._running:  # waiting here holds the playback back until the reader has caught up
+            try:
+                self._queue.put((kind, frame), timeout=0.1)
+                return
+            except queue.Full:
+                continue
+
+    def _next(self) -> tuple | None:
+        """The next (kind, frame) of either stream, or None once the recording has ended."""
+        waited = idle = 0
+        while waited < self.timeout_ms:
+            try:
+                return self._queue.get(timeout=0.1)
+            except queue.Empty:
+                pass
+            waited += 100
+            if self._playback.current_status() == self._stopped:
+                # The reader is done, but frames it read can still be on their way to the queue: the recording has
+                # ended once none has come for a while.
+                idle += 100
+                if idle >= min(1000, self.timeout_ms // 2):
+                    return None
+        raise RealSenseError(f"{self.path}: playback stalled for {self.timeout_ms / 1000:.0f} s")
+
+    def pairs(self) -> Iterator[tuple]:
+        """(colour, depth) frames whose timestamps are within ``tol_ms``, in order; a frame the other stream has
+        none for is skipped (each stream comes in order, so a frame older than the other stream's oldest waiting
+        one by more than ``tol_ms`` has none)."""
+        waiting: dict[str, deque] = {"colour": deque(maxlen=64), "depth": deque(maxlen=64)}
+        while self._running:
+            while waiting["colour"] and waiting["depth"]:
+                colour, depth = waiting["colour"][0], waiting["depth"][0]
+                dt = colour.get_timestamp() - depth.get_timestamp()
+                if abs(dt) <= self.tol_ms:
+                    waiting["colour"].popleft()
+                    waiting["depth"].popleft()
+                    yield colour, depth
+                else:
+                    waiting["depth" if dt > 0 else "colour"].popleft()
+            item = self._next()
+            if item is None:
+                return
+            waiting[item[0]].append(item[1])
+
+    def close(self) -> None:
+        """Stop the playback (safe to call twice)."""
+        self._running = False
+        while not self._queue.empty():
+            self._queue.get_nowait()
+        for sensor, _ in self._sensors:
+            for step in (sensor.stop, sensor.close):
+                try:
+                    step()
+                except RuntimeError:  # not started or not opened
+                    pass
+
+
+class _Joiner:
+    """One frameset of a colour and a depth frame, what ``rs.align`` takes, made by a processing block."""
+
+    def __init__(self, rs):
+        self._depth = None
+        self._queue = rs.frame_queue(1, keep_frames=True)
+        self._block = rs.processing_block(self._join)
+        self._block.start(self._queue)
+
+    def _join(self, colour, source) -> None:
+        source.frame_ready(source.allocate_composite_frame([self._depth, colour]))
+
+    def __call__(self, colour, depth):
+        self._depth = depth
+        self._block.invoke(colour)
+        self._depth = None
+        return self._queue.wait_for_frame(1000).as_frameset()
+
+
 class RealSenseSource:
     """Frames (``surgtrack.io.Frame``, depth in metres aligned to colour) from a live camera or a recorded file.
 
@@ -69,41 +199,38 @@ class RealSenseSource:
         rs = _rs()
         self.file = None if file is None else Path(file)
         self.timeout_ms = int(timeout_s * 1000)
-        config = rs.config()
+        self._pipeline = self._recording = None
         if self.file is not None:
             if not self.file.is_file():
                 raise RealSenseError(f"{self.file}: no such recording")
-            config.enable_device_from_file(str(self.file), repeat_playback=False)
+            self._recording = _Recording(rs, self.file, self.timeout_ms)
+            device = self._recording.device
+            colour, depth = self._recording.profiles["colour"], self._recording.profiles["depth"]
         else:
             if len(rs.context().query_devices()) == 0:
                 raise RealSenseError("no RealSense camera connected (give a recording with --file)")
+            config = rs.config()
             config.enable_stream(rs.stream.depth, width, height, rs.format.z16, fps)
             config.enable_stream(rs.stream.color, width, height, rs.format.rgb8, fps)
-        self._pipeline = rs.pipeline()
-        where = self.file if self.file is not None else "RealSense camera"
-        try:
-            # Resolving first gives the device before streaming starts, so a recording is never played in real
-            # time (which drops the frames a slow reader misses); start() then uses this resolved profile.
-            device = config.resolve(rs.pipeline_wrapper(self._pipeline)).get_device()
-            self._playback = device.as_playback() if self.file is not None else None
-            if self._playback is not None:
-                self._playback.set_real_time(False)
-            profile = self._pipeline.start(config)
-        except RuntimeError as e:
-            raise RealSenseError(f"{where}: cannot start streaming ({e})") from None
+            self._pipeline = rs.pipeline()
+            try:
+                profile = self._pipeline.start(config)
+            except RuntimeError as e:
+                raise RealSenseError(f"RealSense camera: cannot start streaming ({e})") from None
+            device = profile.get_device()
+            colour, depth = profile.get_stream(rs.stream.color), profile.get_stream(rs.stream.depth)
         self._running = True
+        where = self.file or "camera"
         try:
-            colour = profile.get_stream(rs.stream.color)
-            depth = profile.get_stream(rs.stream.depth)
             self.depth_scale = float(device.first_depth_sensor().get_depth_scale())
         except RuntimeError as e:
             self.close()
-            raise RealSenseError(f"{self.file or 'camera'}: needs a colour and a depth stream ({e})") from None
+            raise RealSenseError(f"{where}: has no depth sensor ({e})") from None
         fmt = str(colour.format()).split(".")[-1]
         if fmt not in _COLOUR_FORMATS:
             self.close()
-            raise RealSenseError(f"{self.file or 'camera'}: colour format {fmt} is not supported "
-                                 f"(use one of {', '.join(_COLOUR_FORMATS)})")
+            raise RealSenseError(f"{where}: colour format {fmt} is not supported (use one of "
+                                 f"{', '.join(_COLOUR_FORMATS)})")
         self._bgr = _COLOUR_FORMATS[fmt]
         intr = colour.as_video_stream_profile().get_intrinsics()
         self.K = intrinsics_matrix(intr)
@@ -111,52 +238,38 @@ class RealSenseSource:
         self.fps = float(colour.fps())
         if align is None:
             align = not _already_aligned(depth, colour)
-        self._align = rs.align(rs.stream.color) if align else None
+        self._align = (rs.align(rs.stream.color), _Joiner(rs)) if align else None
 
-    def _next_frameset(self):
-        """The next frameset, or None at the end of a recording."""
-        if self._playback is None:
+    def _camera_pairs(self) -> Iterator[tuple]:
+        while self._running:
             ok, frames = self._pipeline.try_wait_for_frames(self.timeout_ms)
             if not ok:
                 raise RealSenseError(f"camera sent no frames for {self.timeout_ms / 1000:.0f} s")
-            return frames
-        rs = _rs()
-        waited, stopped_for = 0, 0
-        while waited < self.timeout_ms:
-            ok, frames = self._pipeline.try_wait_for_frames(100)
-            if ok:
-                return frames
-            if self._playback.current_status() == rs.playback_status.stopped:
-                # The reader is done, but the last framesets it read can still be on their way through the
-                # pipeline to a slow consumer: the recording has ended once none has come for a while.
-                stopped_for += 100
-                if stopped_for >= min(1000, self.timeout_ms // 2):
-                    return None
-            waited += 100
-        raise RealSenseError(f"{self.file}: playback stalled for {self.timeout_ms / 1000:.0f} s")
+            colour, depth = frames.get_color_frame(), frames.get_depth_frame()
+            if colour and depth:
+                yield colour, depth
 
     def __iter__(self) -> Iterator[Frame]:
-        index = 0
-        while self._running:
-            frames = self._next_frameset()
-            if frames is None:
-                return
+        pairs = self._recording.pairs() if self._recording is not None else self._camera_pairs()
+        for index, (colour, depth) in enumerate(pairs):
             if self._align is not None:
-                frames = self._align.process(frames)
-            colour, depth = frames.get_color_frame(), frames.get_depth_frame()
-            if not colour or not depth:
-                continue
+                align, join = self._align
+                frames = align.process(join(colour, depth))
+                colour, depth = frames.get_color_frame(), frames.get_depth_frame()
             rgb = np.asanyarray(colour.get_data())[..., :3]
             rgb = np.array(rgb[..., ::-1] if self._bgr else rgb, order="C")  # a copy: librealsense reuses buffers
             z = np.asanyarray(depth.get_data()).astype(np.float32) * np.float32(self.depth_scale)
             yield Frame(index, f"{index:06d}", rgb, z, self.K.copy())
-            index += 1
 
     def close(self) -> None:
         """Stop streaming (safe to call twice)."""
-        if self._running:
-            self._running = False
+        self._running = False
+        if self._recording is not None:
+            self._recording.close()
+            self._recording = None
+        if self._pipeline is not None:
             self._pipeline.stop()
+            self._pipeline = None
 
     def __enter__(self) -> RealSenseSource:
         return self
