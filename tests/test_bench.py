@@ -5,9 +5,9 @@ from __future__ import annotations
 import pytest
 from helpers import assert_one_line_error, surgtrack
 
-from surgtrack.bench import _mean, format_table, method_config, shorten
+from surgtrack.bench import _mean, format_table, method_config
 from surgtrack.config import TrackerConfig
-from surgtrack.synth import SynthSpec
+from surgtrack.synth import SynthSpec, shorten
 
 
 def test_ablations_switch_one_component_each():

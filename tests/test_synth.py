@@ -146,7 +146,7 @@ def test_suites_list_procedural_sequences_and_skip_rendered(tmp_path: Path, monk
         suite_specs("ho3d")
 
     tiny = SynthSpec(instrument="bronchoscope", frames=3, width=96, height=72, seed=1)
-    monkeypatch.setattr(suites_mod, "suite_specs", lambda name, short=False: [("b1", tiny)])
+    monkeypatch.setattr(suites_mod, "suite_specs", lambda name, short=False, frames=None: [("b1", tiny)])
     (path,) = render_suite("instrument3d", tmp_path / "suite")
     stamp = (path / "rgb" / "000000.png").stat().st_mtime_ns
     assert render_suite("instrument3d", tmp_path / "suite") == [path]
@@ -172,3 +172,28 @@ def test_cli_synth(tmp_path: Path) -> None:
     assert len(list((out / "rgb").glob("*.png"))) == 3 and (out / "gt" / "model.ply").is_file()
     bad = CliRunner().invoke(app, ["synth", str(tmp_path / "x"), "--instrument", "no_such_tool"])
     assert bad.exit_code == 2
+
+
+def test_cli_synth_cuts_a_suite_to_frames(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from typer.testing import CliRunner
+
+    from surgtrack.cli import app
+
+    monkeypatch.setenv("SURGTRACK_MESHES", str(tmp_path / "nowhere"))  # the procedural sequences only
+    out = tmp_path / "suite"
+    with pytest.warns(UserWarning, match="real meshes not found"):
+        res = CliRunner().invoke(app, ["synth", str(out), "--suite", "instrument3d", "--short", "--frames", "8"])
+    assert res.exit_code == 0, res.output
+    with pytest.warns(UserWarning, match="real meshes not found"):
+        specs = dict(suite_specs("instrument3d", short=True, frames=8))
+    assert sorted(p.name for p in out.iterdir()) == sorted(specs)
+    for name, spec in specs.items():
+        assert spec.frames == 8 and is_rendered(spec, out / name)
+        assert len(list((out / name / "rgb").glob("*.png"))) == 8
+    bad = CliRunner().invoke(app, ["synth", str(tmp_path / "x"), "--suite", "instrument3d", "--frames", "0"])
+    assert bad.exit_code == 2 and "0 frames" in bad.output
+    assert not (tmp_path / "x").exists()
+    # Cut to 3 frames, endoscope_2's hand covers the instrument from the first frame: no first mask to track from.
+    with pytest.warns(UserWarning, match="real meshes not found"):
+        bad = CliRunner().invoke(app, ["synth", str(out), "--suite", "instrument3d", "--short", "--frames", "3"])
+    assert bad.exit_code == 2 and "not in view in the first frame" in bad.output

@@ -20,7 +20,7 @@ from .io import open_sequence
 from .metrics import evaluate
 from .pipeline import track_sequence
 from .plots import plot_accuracy, plot_errors_over_time
-from .synth import SynthSpec, is_rendered, render_sequence, suite_specs
+from .synth import is_rendered, render_sequence, suite_specs
 from .tracker import SurgTracker
 
 
@@ -57,15 +57,6 @@ def make_tracker(name: str, base: TrackerConfig | None = None) -> SurgTracker | 
     return SurgTracker(method_config(name, base))
 
 
-def shorten(spec: SynthSpec, frames: int) -> SynthSpec:
-    """The same sequence cut to ``frames`` frames, its occlusion and fast stretches scaled to fit."""
-    def scale(segments: tuple) -> tuple:
-        return tuple((round(s * frames / spec.frames), max(1, round(n * frames / spec.frames))) for s, n in segments)
-
-    return replace(spec, frames=frames, full_occlusions=scale(spec.full_occlusions),
-                   fast_segments=scale(spec.fast_segments))
-
-
 def run_bench(suite: str, methods: list[str], root: Path | str, short: bool = False, frames: int | None = None,
               first_mask_only: bool = False, log: Callable[[str], None] = print,
               config: TrackerConfig | None = None) -> dict:
@@ -76,9 +67,8 @@ def run_bench(suite: str, methods: list[str], root: Path | str, short: bool = Fa
     root = Path(root)
     results: dict = {"suite": suite, "short": short, "frames": frames, "first_mask_only": first_mask_only,
                      "config": None if config is None else config.to_dict(), "methods": {}}
-    specs = suite_specs(suite, short)
+    specs = suite_specs(suite, short, frames)
     for name, spec in specs:
-        spec = shorten(spec, frames) if frames else spec
         path = root / "data" / name
         if not is_rendered(spec, path):
             log(f"rendering {name} ({spec.frames} frames, {spec.width}x{spec.height})")

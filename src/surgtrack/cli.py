@@ -37,7 +37,8 @@ def synth(
     instrument: Annotated[str, typer.Option(help="procedural name, shared mesh stem or mesh file")] = "forceps",
     suite: Annotated[str | None, typer.Option(help="render a whole suite: instrument3d | ho3d")] = None,
     short: Annotated[bool, typer.Option("--short", help="suite: 40 frames at 320x240")] = False,
-    frames: Annotated[int, typer.Option(help="number of frames")] = 300,
+    frames: Annotated[int | None, typer.Option(
+        help="number of frames (default 300; with --suite, each sequence cut to this many, as bench --frames)")] = None,
     size: Annotated[str, typer.Option(help="WIDTHxHEIGHT")] = "640x480",
     seed: Annotated[int, typer.Option(help="random seed (same seed, same files)")] = 0,
     occluders: Annotated[int, typer.Option(help="moving hands in front of the instrument (0-3)")] = 1,
@@ -85,9 +86,9 @@ def synth(
 
         try:
             if suite is not None:
-                paths = render_suite(suite, out, short=short, progress=on_frame)
+                paths = render_suite(suite, out, short=short, frames=frames, progress=on_frame)
             else:
-                spec = SynthSpec(instrument=instrument, frames=frames, width=w, height=h, fps=fps, speed=speed,
+                spec = SynthSpec(instrument=instrument, frames=frames or 300, width=w, height=h, fps=fps, speed=speed,
                                  seed=seed, n_occluders=occluders, noise=noise, motion_blur=motion_blur,
                                  full_occlusions=spans(full_occlusion, "--full-occlusion"),
                                  fast_segments=spans(fast, "--fast"), background=background)
@@ -443,6 +444,8 @@ def bench(
     for m in names:
         if m not in METHODS:
             fail(f"unknown method {m!r}; choose from {', '.join(METHODS)}")
+    if frames is not None and frames < 1:
+        fail(f"--frames must be at least 1, got {frames}")
     cfg = load_config(config) if config is not None else None
     results = run_bench(suite, names, out, short, frames, first_mask_only, log=typer.echo, config=cfg)
     typer.echo(format_table(results))

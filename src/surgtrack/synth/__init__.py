@@ -3,7 +3,7 @@
 from .instruments import PROCEDURAL, Instrument, load_instrument, meshes_dir
 from .render import is_rendered, render_sequence
 from .spec import SynthSpec
-from .suites import SUITES, render_suite, suite_specs
+from .suites import SUITES, render_suite, shorten, suite_specs
 
 __all__ = [
     "PROCEDURAL",
@@ -15,5 +15,6 @@ __all__ = [
     "meshes_dir",
     "render_sequence",
     "render_suite",
+    "shorten",
     "suite_specs",
 ]

@@ -335,6 +335,9 @@ def render_sequence(spec: SynthSpec, out: Path | str, progress: Callable[[int, i
             if cover_frac[i] < 1 or not (buf["gid"] == INSTRUMENT).any():
                 break
         mask = buf["gid"] == INSTRUMENT
+        if i == 0 and not mask.any():
+            raise ValueError(f"{spec.instrument}: the instrument is not in view in the first frame (a sequence of "
+                             f"{spec.frames} frames covered from its start?)")
         visible.add(buf["p_obj"][mask])
         # auto exposure: the frame's mean luminance drifts towards a target, as a camera's AE loop does
         wanted = AE_TARGET / max(float(buf["linear"].mean()), 1e-3)

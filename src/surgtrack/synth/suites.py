@@ -44,12 +44,21 @@ _HO3D: list[tuple[str, str, int, int, tuple, tuple, float]] = [
 SUITES = {"instrument3d": _INSTRUMENT3D, "ho3d": _HO3D}
 
 
-def _scale(segments: tuple, frames: int, full: int = 300) -> tuple[tuple[int, int], ...]:
-    return tuple((round(s * frames / full), max(1, round(n * frames / full))) for s, n in segments)
+def shorten(spec: SynthSpec, frames: int) -> SynthSpec:
+    """The same sequence cut to ``frames`` frames, its occlusion and fast stretches scaled to fit."""
+    if frames < 1:
+        raise ValueError(f"cannot cut a sequence to {frames} frames")
+
+    def scale(segments: tuple) -> tuple:
+        return tuple((round(s * frames / spec.frames), max(1, round(n * frames / spec.frames))) for s, n in segments)
+
+    return replace(spec, frames=frames, full_occlusions=scale(spec.full_occlusions),
+                   fast_segments=scale(spec.fast_segments))
 
 
-def suite_specs(name: str, short: bool = False) -> list[tuple[str, SynthSpec]]:
-    """(sequence name, spec) pairs of a suite; `short` gives 40 frames at 320x240 for tests."""
+def suite_specs(name: str, short: bool = False, frames: int | None = None) -> list[tuple[str, SynthSpec]]:
+    """(sequence name, spec) pairs of a suite; `short` gives 40 frames at 320x240 for tests, ``frames`` cuts every
+    sequence to that many (`shorten`)."""
     if name not in SUITES:
         raise ValueError(f"unknown suite {name!r}; choose one of {', '.join(SUITES)}")
     out = []
@@ -61,8 +70,9 @@ def suite_specs(name: str, short: bool = False) -> list[tuple[str, SynthSpec]]:
         spec = SynthSpec(instrument=inst, seed=seed, n_occluders=occ, full_occlusions=full, fast_segments=fast,
                          speed=speed)
         if short:
-            spec = replace(spec, frames=SHORT_FRAMES, width=SHORT_SIZE[0], height=SHORT_SIZE[1],
-                           full_occlusions=_scale(full, SHORT_FRAMES), fast_segments=_scale(fast, SHORT_FRAMES))
+            spec = replace(shorten(spec, SHORT_FRAMES), width=SHORT_SIZE[0], height=SHORT_SIZE[1])
+        if frames is not None:
+            spec = shorten(spec, frames)
         if inst.startswith("ycb_"):
             spec = replace(spec, depth_range=(0.35, 0.6))
         else:  # thin shafts: close enough that the shaft is several pixels wide, as in the paper's recordings
@@ -76,13 +86,13 @@ def suite_specs(name: str, short: bool = False) -> list[tuple[str, SynthSpec]]:
     return out
 
 
-def render_suite(name: str, out_root: Path | str, short: bool = False,
+def render_suite(name: str, out_root: Path | str, short: bool = False, frames: int | None = None,
                  progress: Callable[[str, int, int], None] | None = None) -> list[Path]:
-    """Render every sequence of a suite under out_root/<sequence>; ones already rendered from the same spec are
-    kept as they are. progress(sequence, frame, frames) is called per frame rendered."""
+    """Render every sequence of a suite (`suite_specs`) under out_root/<sequence>; ones already rendered from the
+    same spec are kept as they are. progress(sequence, frame, frames) is called per frame rendered."""
     root = Path(out_root)
     paths = []
-    for seq, spec in suite_specs(name, short):
+    for seq, spec in suite_specs(name, short, frames):
         path = root / seq
         if not is_rendered(spec, path):
             cb = None if progress is None else (lambda i, n, s=seq: progress(s, i, n))
