@@ -1,0 +1,81 @@
+"""Tracking speed of this checkout against the code at another git revision, measured in pairs: #5 asks that the
+Instrument SDF leave tracking no slower than it was before #5 (the revision before the SDF came in is 549f558).
+
+    .venv/bin/python benchmarks/speed_vs_revision.py DATA REV [--repeats N]
+
+DATA holds rendered sequences, one folder each (e.g. the ``data/`` folder that ``surgtrack bench`` writes). REV is
+checked out into a temporary git worktree. Each sequence is tracked with per-frame masks and each code's default
+configuration in the order A B B A (A: this checkout, B: REV), ``--repeats`` times, each run in a fresh Python
+process with that code first on its path, so that a drift of the machine's speed falls on both alike. Frames/s is
+frames over the tracking's wall-clock time as each code's ``track_sequence`` reports it (``RunSummary.seconds``: the
+end-of-run mesh is not counted). Prints each sequence's frames/s for A and B and the totals.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+# Run in a child process, with the code to time first on sys.path; prints {"frames": n, "seconds": s}.
+RUN = """
+import json, sys, tempfile
+from surgtrack.io import open_sequence
+from surgtrack.pipeline import track_sequence
+with tempfile.TemporaryDirectory() as out:
+    s = track_sequence(open_sequence(sys.argv[1]), out)
+print(json.dumps({"frames": s.frames, "seconds": s.seconds}))
+"""
+
+
+def timed_run(src: Path, seq: Path) -> tuple[int, float]:
+    """(frames, tracking seconds) of one run of the code in ``src`` on ``seq``."""
+    env = {**os.environ, "PYTHONPATH": str(src)}
+    done = subprocess.run([sys.executable, "-c", RUN, str(seq)], env=env, capture_output=True, text=True, check=False)
+    if done.returncode != 0:
+        raise SystemExit(f"{seq}: the run with {src} failed:\n{done.stderr[-2000:]}")
+    result = json.loads(done.stdout.strip().splitlines()[-1])
+    return int(result["frames"]), float(result["seconds"])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("data", type=Path)
+    ap.add_argument("rev", help="git revision to compare with, e.g. 549f558")
+    ap.add_argument("--repeats", type=int, default=1)
+    args = ap.parse_args()
+    seqs = sorted(p for p in args.data.iterdir() if p.is_dir())
+    with tempfile.TemporaryDirectory() as tmp:
+        tree = Path(tmp) / "rev"
+        subprocess.run(["git", "-C", str(REPO), "worktree", "add", "--detach", "-q", str(tree), args.rev], check=True)
+        try:
+            srcs = {"A": REPO / "src", "B": tree / "src"}
+            totals = {name: [0, 0.0] for name in srcs}
+            print(f"A: {REPO} (this checkout), B: {args.rev}")
+            print(f"{'sequence':<18} {'A frames/s':>10} {'B frames/s':>10}  B/A")
+            for seq in seqs:
+                per = {name: [0, 0.0] for name in srcs}
+                for _ in range(args.repeats):
+                    for name in "ABBA":
+                        frames, seconds = timed_run(srcs[name], seq)
+                        per[name][0] += frames
+                        per[name][1] += seconds
+                fps = {name: n / t for name, (n, t) in per.items()}
+                print(f"{seq.name:<18} {fps['A']:10.2f} {fps['B']:10.2f}  {fps['B'] / fps['A']:.3f}", flush=True)
+                for name in srcs:
+                    totals[name][0] += per[name][0]
+                    totals[name][1] += per[name][1]
+            fps = {name: n / t for name, (n, t) in totals.items()}
+            print(f"{'all':<18} {fps['A']:10.2f} {fps['B']:10.2f}  {fps['B'] / fps['A']:.3f}")
+        finally:
+            subprocess.run(["git", "-C", str(REPO), "worktree", "remove", "--force", str(tree)], check=False)
+
+
+if __name__ == "__main__":
+    main()
