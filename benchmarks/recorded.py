@@ -1,5 +1,6 @@
-"""What the call-by-call benchmarks (`free_space_cost.py`, `ransac_cost.py`) share: a tracking run with one
-function's calls recorded, and the fastest of several timed replays of them."""
+"""What the speed benchmarks share: for the call-by-call ones (`free_space_cost.py`, `ransac_cost.py`) a tracking run
+with one function's calls recorded and the fastest of several timed replays of them; for the whole-run ones
+(`sdf_speed.py`, `speed_vs_revision.py`) runs of two arms in the order A B B A and their table."""
 
 from __future__ import annotations
 
@@ -40,3 +41,25 @@ def fastest(fn: Callable, args: list[tuple], repeats: int) -> float:
             fn(*a)
         best = min(best, time.perf_counter() - t)
     return best
+
+
+def abba(seqs: list[Path], run: Callable[[str, Path], tuple[int, float]], repeats: int) -> None:
+    """Run each sequence ``repeats`` times in the order A B B A, ``run(arm, seq) -> (frames, seconds)``, so that a
+    drift of the machine's speed falls on both arms alike; print each sequence's frames/s for A and B and the
+    totals."""
+    totals = {arm: [0, 0.0] for arm in "AB"}
+    print(f"{'sequence':<18} {'A frames/s':>10} {'B frames/s':>10}  B/A")
+    for seq in seqs:
+        per = {arm: [0, 0.0] for arm in "AB"}
+        for _ in range(repeats):
+            for arm in "ABBA":
+                frames, seconds = run(arm, seq)
+                per[arm][0] += frames
+                per[arm][1] += seconds
+        fps = {arm: n / t for arm, (n, t) in per.items()}
+        print(f"{seq.name:<18} {fps['A']:10.2f} {fps['B']:10.2f}  {fps['B'] / fps['A']:.3f}", flush=True)
+        for arm in totals:
+            totals[arm][0] += per[arm][0]
+            totals[arm][1] += per[arm][1]
+    fps = {arm: n / t for arm, (n, t) in totals.items()}
+    print(f"{'all':<18} {fps['A']:10.2f} {fps['B']:10.2f}  {fps['B'] / fps['A']:.3f}")

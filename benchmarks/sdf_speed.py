@@ -18,6 +18,8 @@ import json
 import tempfile
 from pathlib import Path
 
+from recorded import abba, sequences
+
 from surgtrack.config import TrackerConfig
 from surgtrack.io import open_sequence
 from surgtrack.pipeline import track_sequence
@@ -32,24 +34,13 @@ def main() -> None:
     base = json.loads(args.config.read_text()) if args.config else {}
     off = {**base, "sdf": {**base.get("sdf", {}), "enabled": False}, "graph": {**base.get("graph", {}), "w_fs": 0.0}}
     configs = {"A": TrackerConfig.from_dict(base), "B": TrackerConfig.from_dict(off)}
-    totals = {name: [0, 0.0] for name in configs}
-    print(f"{'sequence':<18} {'A frames/s':>10} {'B frames/s':>10}  B/A")
-    for root in sorted(p for p in args.data.iterdir() if p.is_dir()):
-        seq = open_sequence(root)
-        per = {name: [0, 0.0] for name in configs}
-        for _ in range(args.repeats):
-            for name in "ABBA":
-                with tempfile.TemporaryDirectory() as out:
-                    s = track_sequence(seq, out, configs[name])
-                per[name][0] += s.frames
-                per[name][1] += s.seconds
-        fps = {name: n / t for name, (n, t) in per.items()}
-        print(f"{root.name:<18} {fps['A']:10.2f} {fps['B']:10.2f}  {fps['B'] / fps['A']:.3f}", flush=True)
-        for name in configs:
-            totals[name][0] += per[name][0]
-            totals[name][1] += per[name][1]
-    fps = {name: n / t for name, (n, t) in totals.items()}
-    print(f"{'all':<18} {fps['A']:10.2f} {fps['B']:10.2f}  {fps['B'] / fps['A']:.3f}")
+
+    def run(arm: str, root: Path) -> tuple[int, float]:
+        with tempfile.TemporaryDirectory() as out:
+            s = track_sequence(open_sequence(root), out, configs[arm])
+        return s.frames, s.seconds
+
+    abba(sequences(args.data), run, args.repeats)
 
 
 if __name__ == "__main__":

@@ -21,6 +21,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+from recorded import abba, sequences
+
 REPO = Path(__file__).resolve().parents[1]
 
 # Run in a child process, with the code to time first on sys.path; prints {"frames": n, "seconds": s}.
@@ -50,29 +52,13 @@ def main() -> None:
     ap.add_argument("rev", help="git revision to compare with, e.g. 549f558")
     ap.add_argument("--repeats", type=int, default=1)
     args = ap.parse_args()
-    seqs = sorted(p for p in args.data.iterdir() if p.is_dir())
     with tempfile.TemporaryDirectory() as tmp:
         tree = Path(tmp) / "rev"
         subprocess.run(["git", "-C", str(REPO), "worktree", "add", "--detach", "-q", str(tree), args.rev], check=True)
         try:
             srcs = {"A": REPO / "src", "B": tree / "src"}
-            totals = {name: [0, 0.0] for name in srcs}
             print(f"A: {REPO} (this checkout), B: {args.rev}")
-            print(f"{'sequence':<18} {'A frames/s':>10} {'B frames/s':>10}  B/A")
-            for seq in seqs:
-                per = {name: [0, 0.0] for name in srcs}
-                for _ in range(args.repeats):
-                    for name in "ABBA":
-                        frames, seconds = timed_run(srcs[name], seq)
-                        per[name][0] += frames
-                        per[name][1] += seconds
-                fps = {name: n / t for name, (n, t) in per.items()}
-                print(f"{seq.name:<18} {fps['A']:10.2f} {fps['B']:10.2f}  {fps['B'] / fps['A']:.3f}", flush=True)
-                for name in srcs:
-                    totals[name][0] += per[name][0]
-                    totals[name][1] += per[name][1]
-            fps = {name: n / t for name, (n, t) in totals.items()}
-            print(f"{'all':<18} {fps['A']:10.2f} {fps['B']:10.2f}  {fps['B'] / fps['A']:.3f}")
+            abba(sequences(args.data), lambda arm, seq: timed_run(srcs[arm], seq), args.repeats)
         finally:
             subprocess.run(["git", "-C", str(REPO), "worktree", "remove", "--force", str(tree)], check=False)
 
