@@ -193,6 +193,10 @@ def test_cli_synth_cuts_a_suite_to_frames(tmp_path: Path, monkeypatch: pytest.Mo
     bad = CliRunner().invoke(app, ["synth", str(tmp_path / "x"), "--suite", "instrument3d", "--frames", "0"])
     assert bad.exit_code == 2 and "0 frames" in bad.output
     assert not (tmp_path / "x").exists()
+    bad = CliRunner().invoke(app, ["synth", str(tmp_path / "x"), "--suite", "instrument3d", "--seed", "3",
+                                   "--size", "320x240"])
+    assert bad.exit_code == 2 and "--size, --seed: for one sequence" in bad.output
+    assert not (tmp_path / "x").exists()
     # Cut to 3 frames, endoscope_2's hand covers the instrument from the first frame: no first mask to track from.
     with pytest.warns(UserWarning, match="real meshes not found"):
         bad = CliRunner().invoke(app, ["synth", str(out), "--suite", "instrument3d", "--short", "--frames", "3"])

@@ -33,6 +33,7 @@ _ = (Path, Annotated)  # used by the commands below
 
 @app.command()
 def synth(
+    ctx: typer.Context,
     out: Annotated[Path, typer.Argument(help="output folder (one sequence, or the root of a suite)")],
     instrument: Annotated[str, typer.Option(help="procedural name, shared mesh stem or mesh file")] = "forceps",
     suite: Annotated[str | None, typer.Option(help="render a whole suite: instrument3d | ho3d")] = None,
@@ -69,6 +70,13 @@ def synth(
             out_spans.append((a, b))
         return tuple(out_spans)
 
+    if suite is not None:
+        given = [name for name in ("instrument", "size", "seed", "occluders", "full_occlusion", "fast", "speed", "fps",
+                                   "noise", "motion_blur", "background")
+                 if getattr(ctx.get_parameter_source(name), "name", None) == "COMMANDLINE"]
+        if given:
+            fail(f"{', '.join('--' + g.replace('_', '-') for g in given)}: for one sequence; --suite renders the "
+                 f"suite's own (--short and --frames apply to it)")
     if suite is None:
         try:
             w, h = (int(x) for x in size.lower().split("x"))
