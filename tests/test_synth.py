@@ -172,6 +172,8 @@ def test_cli_synth(tmp_path: Path) -> None:
     assert len(list((out / "rgb").glob("*.png"))) == 3 and (out / "gt" / "model.ply").is_file()
     bad = CliRunner().invoke(app, ["synth", str(tmp_path / "x"), "--instrument", "no_such_tool"])
     assert bad.exit_code == 2
+    bad = CliRunner().invoke(app, ["synth", str(tmp_path / "x"), "--frames", "0"])
+    assert bad.exit_code == 2 and "0 frames" in bad.output
 
 
 def test_cli_synth_cuts_a_suite_to_frames(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

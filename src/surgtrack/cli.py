@@ -77,7 +77,7 @@ def synth(
         if given:
             fail(f"{', '.join('--' + g.replace('_', '-') for g in given)}: for one sequence; --suite renders the "
                  f"suite's own (--short and --frames apply to it)")
-    if suite is None:
+    else:
         try:
             w, h = (int(x) for x in size.lower().split("x"))
         except ValueError:
@@ -96,8 +96,9 @@ def synth(
             if suite is not None:
                 paths = render_suite(suite, out, short=short, frames=frames, progress=on_frame)
             else:
-                spec = SynthSpec(instrument=instrument, frames=frames or 300, width=w, height=h, fps=fps, speed=speed,
-                                 seed=seed, n_occluders=occluders, noise=noise, motion_blur=motion_blur,
+                spec = SynthSpec(instrument=instrument, frames=300 if frames is None else frames, width=w, height=h,
+                                 fps=fps, speed=speed, seed=seed, n_occluders=occluders, noise=noise,
+                                 motion_blur=motion_blur,
                                  full_occlusions=spans(full_occlusion, "--full-occlusion"),
                                  fast_segments=spans(fast, "--fast"), background=background)
                 paths = [render_sequence(spec, out, lambda i, n: on_frame(out.name or "synth", i, n))]

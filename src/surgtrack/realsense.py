@@ -168,7 +168,8 @@ class _Recording:
 
 
 class _Joiner:
-    """One frameset of a colour and a depth frame, what ``rs.align`` takes, made by a processing block."""
+    """One frameset of a colour and a depth frame that came apart (what ``rs.align`` and the camera path take),
+    made by a processing block."""
 
     def __init__(self, rs):
         self._depth = None
@@ -204,6 +205,7 @@ class RealSenseSource:
             if not self.file.is_file():
                 raise RealSenseError(f"{self.file}: no such recording")
             self._recording = _Recording(rs, self.file, self.timeout_ms)
+            self._join = _Joiner(rs)
             device = self._recording.device
             colour, depth = self._recording.profiles["colour"], self._recording.profiles["depth"]
         else:
@@ -238,28 +240,33 @@ class RealSenseSource:
         self.fps = float(colour.fps())
         if align is None:
             align = not _already_aligned(depth, colour)
-        self._align = (rs.align(rs.stream.color), _Joiner(rs)) if align else None
+        self._align = rs.align(rs.stream.color) if align else None
 
-    def _camera_pairs(self) -> Iterator[tuple]:
+    def _framesets(self) -> Iterator:
+        """Framesets of the camera, or of the recording's (colour, depth) pairs joined (`_Joiner`)."""
+        if self._recording is not None:
+            for colour, depth in self._recording.pairs():
+                yield self._join(colour, depth)
+            return
         while self._running:
             ok, frames = self._pipeline.try_wait_for_frames(self.timeout_ms)
             if not ok:
                 raise RealSenseError(f"camera sent no frames for {self.timeout_ms / 1000:.0f} s")
-            colour, depth = frames.get_color_frame(), frames.get_depth_frame()
-            if colour and depth:
-                yield colour, depth
+            yield frames
 
     def __iter__(self) -> Iterator[Frame]:
-        pairs = self._recording.pairs() if self._recording is not None else self._camera_pairs()
-        for index, (colour, depth) in enumerate(pairs):
+        index = 0
+        for frames in self._framesets():
             if self._align is not None:
-                align, join = self._align
-                frames = align.process(join(colour, depth))
-                colour, depth = frames.get_color_frame(), frames.get_depth_frame()
+                frames = self._align.process(frames)
+            colour, depth = frames.get_color_frame(), frames.get_depth_frame()
+            if not colour or not depth:
+                continue
             rgb = np.asanyarray(colour.get_data())[..., :3]
             rgb = np.array(rgb[..., ::-1] if self._bgr else rgb, order="C")  # a copy: librealsense reuses buffers
             z = np.asanyarray(depth.get_data()).astype(np.float32) * np.float32(self.depth_scale)
             yield Frame(index, f"{index:06d}", rgb, z, self.K.copy())
+            index += 1
 
     def close(self) -> None:
         """Stop streaming (safe to call twice)."""
