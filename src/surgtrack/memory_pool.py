@@ -8,12 +8,14 @@ neighbour in viewing direction is closest) is dropped, never the first, so the p
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
 from .config import PoolConfig
 from .features import Features
 from .geometry import rotation_angle_deg
+from .posture_graph import GridPoints
 
 
 @dataclass(eq=False)
@@ -35,6 +37,11 @@ class Keyframe:
     def __post_init__(self) -> None:
         if self.tracked_pose is None:
             self.tracked_pose = self.pose.copy()
+
+    @cached_property
+    def grid_points(self) -> GridPoints:
+        """The grid's valid points for the posture graph, found once."""
+        return GridPoints.of(self.xyz, self.normals)
 
     @property
     def view_dir(self) -> np.ndarray:

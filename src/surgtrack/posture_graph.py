@@ -33,6 +33,38 @@ from surgtrack.preprocess import MaskEdge
 SDFFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 
+@dataclass(frozen=True)
+class GridPoints:
+    """A grid's valid pixels (z > 0, finite, with a unit normal): flat pixel indices ``idx`` (N,), camera-frame
+    points ``p`` and unit normals ``q`` (N, 3), the pixels' bounding ``box`` (top row, left column, rows, columns)
+    and ``lut``, 1 + each box pixel's row in them (0: none), row-major over the box. A keyframe joins many solves;
+    its points are found once (`of`) and handed over with each `GraphNode`."""
+
+    idx: np.ndarray
+    p: np.ndarray
+    q: np.ndarray
+    box: tuple[int, int, int, int]
+    lut: np.ndarray
+
+    @classmethod
+    def of(cls, xyz: np.ndarray, normals: np.ndarray) -> GridPoints:
+        w = xyz.shape[1]
+        xyz = np.asarray(xyz).reshape(-1, 3)
+        idx = np.flatnonzero(xyz[:, 2] > 0)
+        p = xyz[idx].astype(np.float64)
+        q = np.asarray(normals).reshape(-1, 3)[idx].astype(np.float64)
+        qn = np.linalg.norm(q, axis=1)
+        ok = np.isfinite(p).all(1) & np.isfinite(qn) & (qn > 0.5)
+        idx, p, q = idx[ok], p[ok], q[ok] / qn[ok, None]
+        if len(idx) == 0:
+            return cls(idx, p, q, (0, 0, 0, 0), np.zeros(0, dtype=np.int32))
+        v, u = np.divmod(idx, w)
+        box = (int(v.min()), int(u.min()), int(v.max() - v.min()) + 1, int(u.max() - u.min()) + 1)
+        lut = np.zeros(box[2] * box[3], dtype=np.int32)
+        lut[(v - box[0]) * box[3] + u - box[1]] = np.arange(1, len(idx) + 1, dtype=np.int32)
+        return cls(idx, p, q, box, lut)
+
+
 @dataclass
 class GraphNode:
     """One frame of the posture graph: pose and its depth at the association resolution."""
@@ -42,6 +74,10 @@ class GraphNode:
     normals: np.ndarray  # (h, w, 3) camera-frame unit normals on the same grid
     K: np.ndarray  # 3x3 intrinsics scaled to that grid
     fixed: bool = False
+    points: GridPoints | None = None  # `GridPoints.of(xyz, normals)`, when the caller keeps it; made when None
+
+    def grid_points(self) -> GridPoints:
+        return self.points if self.points is not None else GridPoints.of(self.xyz, self.normals)
 
 
 @dataclass
@@ -186,44 +222,32 @@ class _Normal:
         return delta.reshape(n, 6)
 
 
-def _valid_points(nd: GraphNode) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Flat pixel indices, points (N, 3) and unit normals (N, 3) of a node's valid grid pixels."""
-    xyz = np.asarray(nd.xyz).reshape(-1, 3)
-    idx = np.flatnonzero(xyz[:, 2] > 0)
-    p = xyz[idx].astype(np.float64)
-    q = np.asarray(nd.normals).reshape(-1, 3)[idx].astype(np.float64)
-    qn = np.linalg.norm(q, axis=1)
-    ok = np.isfinite(p).all(1) & np.isfinite(qn) & (qn > 0.5)
-    return idx[ok], p[ok], q[ok] / qn[ok, None]
-
-
 class _NodeData:
     """Per-node point samples (sources of L_2D and L_SDF) and a pixel lookup of every valid point (targets of L_2D).
 
     Samples are strided down to at most ``cap`` per node and padded to a common length m: homogeneous points
     ``ph`` (n, 4, m), unit normals ``nrm`` (n, 3, m), mask ``mask`` (n, m), all in each node's camera frame. Targets:
-    ``lut`` maps node k's pixel (v, u) at ``base[k] + v * w[k] + u`` to a column of ``tx`` / ``tn`` (3, 1 + N); column
-    0 is an empty target with z = 0.
+    ``lut`` maps node k's pixel (v, u) inside its box (`GridPoints`) at ``base[k] + (v - top[k]) * w[k] + u -
+    left[k]`` to 1 + the row of its point among node k's (0: none), which is column that + ``shift[k]`` of ``tx`` /
+    ``tn`` (3, 1 + N); column 0 is an empty target with z = 0. The nodes' own lookups are concatenated as they are.
     """
 
     def __init__(self, nodes: Sequence[GraphNode], cap: int) -> None:
-        valid = [_valid_points(nd) for nd in nodes]
-        self.h = np.array([nd.xyz.shape[0] for nd in nodes])
-        self.w = np.array([nd.xyz.shape[1] for nd in nodes])
-        sizes = self.h * self.w
-        self.base = np.concatenate([[0], np.cumsum(sizes)[:-1]])
-        counts = np.array([len(p) for _, p, _ in valid])
+        valid = [nd.grid_points() for nd in nodes]
+        self.top, self.left, self.h, self.w = np.array([g.box for g in valid], dtype=np.int64).reshape(-1, 4).T
+        self.base = np.concatenate([[0], np.cumsum(self.h * self.w)[:-1]])
+        counts = np.array([len(g.p) for g in valid])
         first = 1 + np.concatenate([[0], np.cumsum(counts)[:-1]])
-        self.lut = np.zeros(int(sizes.sum()), dtype=np.int64)
+        self.lut = np.concatenate([g.lut for g in valid] + [np.zeros(1, np.int32)])  # a 0 at the end: never empty
+        self.shift = first - 1  # node k's points start at column 1 + shift[k] of tx, tn
         self.tx = np.zeros((3, 1 + int(counts.sum())))
+        self.tx[:, 1:] = np.concatenate([g.p for g in valid]).T
         self.tn = np.zeros_like(self.tx)
+        self.tn[:, 1:] = np.concatenate([g.q for g in valid]).T
         picks = []
-        for k, (idx, p, q) in enumerate(valid):
-            self.lut[self.base[k] + idx] = first[k] + np.arange(len(idx))
-            self.tx[:, first[k] : first[k] + len(idx)] = p.T
-            self.tn[:, first[k] : first[k] + len(idx)] = q.T
-            step = int(np.ceil(len(p) / cap)) if 0 < cap < len(p) else 1
-            picks.append((p[::step], q[::step]))
+        for g in valid:
+            step = int(np.ceil(len(g.p) / cap)) if 0 < cap < len(g.p) else 1
+            picks.append((g.p[::step], g.q[::step]))
         m = max(1, max(len(p) for p, _ in picks))
         self.ph = np.zeros((len(nodes), 4, m))
         self.ph[:, 3] = 1.0
@@ -252,9 +276,11 @@ class _Projective:
         Ks = np.stack([np.asarray(nd.K, dtype=np.float64) for nd in nodes])[pb]
         self.fx, self.fy = Ks[:, 0, 0, None].astype(f32), Ks[:, 1, 1, None].astype(f32)
         self.cx, self.cy = (Ks[:, 0, 2, None] + 0.5).astype(f32), (Ks[:, 1, 2, None] + 0.5).astype(f32)
-        self.hb, self.wb = data.h[pb][:, None], data.w[pb][:, None]
-        self.base = data.base[pb][:, None]
-        self.lut = data.lut
+        self.v0, self.u0 = data.top[pb][:, None], data.left[pb][:, None]
+        self.v1, self.u1 = self.v0 + data.h[pb][:, None], self.u0 + data.w[pb][:, None]
+        self.wb = data.w[pb][:, None]
+        self.base = (data.base[pb] - data.top[pb] * data.w[pb] - data.left[pb])[:, None]
+        self.lut, self.shift = data.lut, data.shift[pb][:, None]
         self.tx, self.tn = data.tx.astype(f32), data.tn.astype(f32)
         self.ph_a = data.ph[self.pa].astype(f32)
         self.nrm_a = data.nrm[self.pa].astype(f32)
@@ -280,9 +306,10 @@ class _Projective:
         vf = Q[:, 1] * iz
         vf *= self.fy
         vf += self.cy
-        ok = front & (uf >= 0) & (uf < self.wb) & (vf >= 0) & (vf < self.hb)
+        ok = front & (uf >= self.u0) & (uf < self.u1) & (vf >= self.v0) & (vf < self.v1)  # in node b's box
         li = self.lut[np.where(ok, vf.astype(np.int64) * self.wb + uf.astype(np.int64) + self.base, 0)]
         ok &= li > 0
+        li = np.where(ok, li + self.shift, 0)
         X = np.take(self.tx, li, axis=1)
         Nt = np.take(self.tn, li, axis=1)
         D = X - Q.transpose(1, 0, 2)
@@ -305,7 +332,7 @@ class _Projective:
         Ad = self.Ad
         Ad[:, :3, :3] = Rb
         Ad[:, 3:, 3:] = Rb
-        Ad[:, 3:, :3] = np.cross(tb[:, :, None], Rb, axis=1)
+        _cross(tb[:, :, None], Rb, Ad[:, 3:, :3])  # [t]_x R, column by column
         ne.add_opposed(pa, pb, np.matmul(np.matmul(Ad, A), Ad.transpose(0, 2, 1)), np.matmul(Ad, gv[..., None])[..., 0])
 
 

@@ -50,8 +50,10 @@ class Observation:
     def grid(self, factor: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Points and normals on a grid downscaled by ``factor`` (z = 0 outside the instrument), and its K."""
         v = self.valid[::factor, ::factor]
-        xyz = np.where(v[..., None], self.xyz[::factor, ::factor], 0.0)
-        nrm = np.where(v[..., None], self.normals[::factor, ::factor], 0.0)
+        xyz = np.zeros(v.shape + (3,), self.xyz.dtype)
+        xyz[v] = self.xyz[::factor, ::factor][v]
+        nrm = np.zeros(v.shape + (3,), self.normals.dtype)
+        nrm[v] = self.normals[::factor, ::factor][v]
         K = self.K.copy()
         K[:2] /= factor  # grid pixel i is image pixel i * factor
         return xyz, nrm, K
@@ -70,17 +72,30 @@ def mask_bbox(mask: np.ndarray, margin: int) -> tuple[slice, slice] | None:
 
 
 def normals_from_xyz(xyz: np.ndarray, step: int = 2) -> np.ndarray:
-    """Unit normals from the cross product of central differences ``step`` pixels apart, facing the camera."""
-    dx = np.zeros_like(xyz)
-    dy = np.zeros_like(xyz)
-    dx[:, step:-step] = xyz[:, 2 * step :] - xyz[:, : -2 * step]
-    dy[step:-step] = xyz[2 * step :] - xyz[: -2 * step]
-    n = np.cross(dx, dy)
-    norm = np.linalg.norm(n, axis=-1, keepdims=True)
-    n = np.divide(n, norm, out=np.zeros_like(n), where=norm > 0)
-    flip = np.sum(n * xyz, axis=-1) > 0
-    n[flip] *= -1
-    return n
+    """Unit normals from the cross product of central differences ``step`` pixels apart, facing the camera (0 at
+    the border and where the differences are parallel). Worked on one component plane at a time."""
+    x, y, z = (np.ascontiguousarray(xyz[..., k]) for k in range(3))
+
+    def diff(a: np.ndarray, axis: int) -> np.ndarray:
+        out = np.zeros_like(a)
+        if axis == 1:
+            np.subtract(a[:, 2 * step :], a[:, : -2 * step], out=out[:, step:-step])
+        else:
+            np.subtract(a[2 * step :], a[: -2 * step], out=out[step:-step])
+        return out
+
+    ax, ay, az = diff(x, 1), diff(y, 1), diff(z, 1)
+    bx, by, bz = diff(x, 0), diff(y, 0), diff(z, 0)
+    n = (ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx)
+    norm = np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
+    ok = norm > 0
+    for c in n:
+        np.divide(c, norm, out=c, where=ok)
+        c[~ok] = 0
+    flip = n[0] * x + n[1] * y + n[2] * z > 0
+    for c in n:
+        np.negative(c, out=c, where=flip)
+    return np.stack(n, axis=-1)
 
 
 @dataclass(frozen=True)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import time
 from collections import deque
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from typing import NamedTuple
 
 import numpy as np
@@ -37,7 +38,7 @@ from .io import Frame
 from .masking import ColourModel, predict_mask, render_depth, search_regions, silhouette_iou
 from .memory_pool import Keyframe, MemoryPool
 from .model import InstrumentModel
-from .posture_graph import FeatureEdge, FreeSpace, GraphNode, optimize_graph
+from .posture_graph import FeatureEdge, FreeSpace, GraphNode, GridPoints, optimize_graph
 from .preprocess import Observation, preprocess
 from .ransac import plausible, ransac_pose, within
 from .registration import BackgroundFitter, InstrumentSDF, keep_near
@@ -69,8 +70,12 @@ class _Node:
     normals: np.ndarray
     K_grid: np.ndarray
 
+    @cached_property
+    def grid_points(self) -> GridPoints:
+        return GridPoints.of(self.xyz, self.normals)
+
     def graph_node(self, fixed: bool) -> GraphNode:
-        return GraphNode(self.pose, self.xyz, self.normals, self.K_grid, fixed)
+        return GraphNode(self.pose, self.xyz, self.normals, self.K_grid, fixed, self.grid_points)
 
 
 class _Candidate(NamedTuple):
@@ -542,7 +547,7 @@ class SurgTracker:
                 if pair is not None:
                     edges.append((kf, *pair[1:]))
         nodes = [node.graph_node(fixed=False)]
-        nodes += [GraphNode(o.pose, o.xyz, o.normals, o.K_grid, True) for o in others]
+        nodes += [GraphNode(o.pose, o.xyz, o.normals, o.K_grid, True, o.grid_points) for o in others]
         index = {id(o): i + 1 for i, o in enumerate(others)}
         graph_edges = [FeatureEdge(0, index[id(ref)], p_cur, p_ref) for ref, p_ref, p_cur in edges]
         use_sdf = self.sdf is not None and self._field_agrees(node)

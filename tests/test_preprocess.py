@@ -1,0 +1,60 @@
+"""Preprocessing (Stage 2, step 1): normals of the depth, the masked points, and their grid for the posture graph."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from surgtrack.config import PreprocessConfig
+from surgtrack.geometry import depth_to_xyz
+from surgtrack.io import Frame
+from surgtrack.posture_graph import GridPoints
+from surgtrack.preprocess import normals_from_xyz, preprocess
+
+K = np.array([[300.0, 0.0, 80.0], [0.0, 300.0, 60.0], [0.0, 0.0, 1.0]])
+
+
+def tilted_plane(h: int = 120, w: int = 160) -> tuple[np.ndarray, np.ndarray]:
+    """Depth of the plane n . x = d seen by K, and its unit normal n (facing the camera)."""
+    n = np.array([0.3, -0.2, -1.0])
+    n /= np.linalg.norm(n)
+    d = -0.4 * np.linalg.norm([0.3, -0.2, -1.0])  # the plane z = 0.4 + 0.3 x - 0.2 y
+    u, v = np.meshgrid(np.arange(w), np.arange(h))
+    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u, dtype=float)], -1)
+    return (d / (rays @ n)).astype(np.float32), n
+
+
+def test_normals_of_a_plane_face_the_camera_and_are_zero_at_the_border():
+    depth, n = tilted_plane()
+    xyz = depth_to_xyz(depth, K).astype(np.float32)
+    for step in (1, 2):
+        nrm = normals_from_xyz(xyz, step)
+        inner = nrm[step:-step, step:-step]
+        assert np.abs(inner - n.astype(np.float32)).max() < 1e-4
+        assert not nrm[:step].any() and not nrm[:, -step:].any()
+    flat = np.zeros_like(xyz)  # no depth: no normal, and nothing undefined
+    assert not normals_from_xyz(flat).any()
+
+
+def test_grid_keeps_the_valid_points_and_the_graph_finds_them():
+    depth, n = tilted_plane()
+    mask = np.zeros(depth.shape, bool)
+    mask[30:90, 40:120] = True
+    depth[50:54, 60:64] = 0.0  # a hole in the depth
+    frame = Frame(0, "0", np.zeros(depth.shape + (3,), np.uint8), depth, K, mask)
+    obs = preprocess(frame, mask, PreprocessConfig())
+    xyz, nrm, Kg = obs.grid(2)
+    assert xyz.shape == (60, 80, 3) and np.allclose(Kg[:2], K[:2] / 2)
+    on = obs.valid[::2, ::2]
+    assert on.sum() > 500 and not on[26, 31]  # the hole is not valid
+    assert np.array_equal(xyz[on], obs.xyz[::2, ::2][on]) and not xyz[~on].any() and not nrm[~on].any()
+    g = GridPoints.of(xyz, nrm)
+    assert np.array_equal(g.idx, np.flatnonzero(on))
+    assert np.allclose(g.p, xyz[on]) and np.allclose(np.linalg.norm(g.q, axis=1), 1.0)
+    v, u = np.divmod(g.idx, 80)
+    away = (np.abs(2 * v - 52) > 8) | (np.abs(2 * u - 62) > 8)  # the filter bends the depth at the hole's edge
+    assert np.allclose(g.q[away], n, atol=1e-3)
+    top, left, h, w = g.box
+    assert (top, left, h, w) == (v.min(), u.min(), v.max() - v.min() + 1, u.max() - u.min() + 1)
+    lut = g.lut.reshape(h, w)
+    assert np.array_equal(lut[v - top, u - left], np.arange(1, len(g.idx) + 1))
+    assert not lut[~on[top : top + h, left : left + w]].any()
