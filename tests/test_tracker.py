@@ -196,6 +196,31 @@ def test_tracks_from_the_first_mask_only(synth_seq, tmp_path):
 
 
 
+@pytest.mark.parametrize("min_area", [0.5, 0.0])
+def test_a_mostly_hidden_instrument_without_its_mask_does_not_become_a_keyframe(synth_seq, min_area):
+    """Tracked without a mask, a frame whose predicted mask covers less than ``pool.min_predicted_area`` of the
+    largest keyframe mask (here half; part of the instrument is behind a hand) is tracked but not added to the
+    memory pool: a mostly hidden instrument's mask is mostly the margin around the model, and what lies there at the
+    instrument's depth would join the model. The next frame, which shows the instrument, is added as before."""
+    seq = open_sequence(synth_seq)
+    cfg = TrackerConfig()
+    cfg.sdf.enabled = False
+    cfg.pool.keyframe_rot_deg = 0.0  # every tracked frame is a new view
+    cfg.pool.min_predicted_area = min_area
+    tracker = SurgTracker(cfg)
+    tracker.register(seq[0], seq[0].mask)
+    frame = seq[1]
+    v, u = np.nonzero(frame.mask & (frame.depth > 0))
+    hidden = np.argsort(u)[: int(0.4 * len(u))]  # the leftmost 40 % of its pixels, behind a hand
+    rgb, depth = frame.rgb.copy(), frame.depth.copy()
+    rgb[v[hidden], u[hidden]] = (200, 160, 140)
+    depth[v[hidden], u[hidden]] -= 0.05
+    assert tracker.track(replace(frame, rgb=rgb, depth=depth), None).status == "tracked"
+    assert len(tracker.pool) == (2 if min_area == 0 else 1)
+    assert tracker.track(seq[2], None).status == "tracked"
+    assert len(tracker.pool) == (3 if min_area == 0 else 2)
+
+
 @pytest.mark.parametrize("gap", [0.02, 0.0])
 def test_without_masks_an_occluder_in_front_of_the_instrument_teaches_the_colour_model(synth_seq, gap):
     """Tracked without a mask, the pixels well in front of the model at the tracked pose (a hand across the

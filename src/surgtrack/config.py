@@ -63,6 +63,7 @@ class PoolConfig:
     max_size: int = 60  # cap; retention keeps view coverage
     K: int = 9  # memory frames selected as graph nodes
     overlap_normal_deg: float = 70.0  # view overlap: normals facing the camera within this angle
+    min_predicted_area: float = 0.25  # a predicted mask joins the pool only with this fraction of its largest mask
 
 
 @dataclass

@@ -43,6 +43,11 @@ class Keyframe:
         """The grid's valid points for the posture graph, found once."""
         return GridPoints.of(self.xyz, self.normals)
 
+    @cached_property
+    def area(self) -> int:
+        """Pixels in its instrument mask."""
+        return int(np.count_nonzero(self.mask))
+
     @property
     def view_dir(self) -> np.ndarray:
         """The camera's optical axis in the object frame."""

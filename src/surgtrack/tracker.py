@@ -265,7 +265,7 @@ class SurgTracker:
         self.lost = False
         self.frames_lost = 0
         self.recent.append(node)
-        if self.cfg.pool.enabled and self.pool.should_add(pose):
+        if self.cfg.pool.enabled and self.pool.should_add(pose) and self._keyframe_worthy(obs):
             self._add_keyframe(node, obs)
         clock.lap("pool")
         return TrackResult(pose, status, confidence, clock.laps, inliers)
@@ -315,7 +315,7 @@ class SurgTracker:
         within the reach without its cap: a region's centroid can lie far from the instrument's origin (a long
         shaft), and the pose found on it is held to the cap anyway."""
         f, pre = self.cfg.failure, self.cfg.preprocess
-        seen = max(max(int(k.mask.sum()) for k in self.pool.keyframes), f.min_pixels)
+        seen = max(max(k.area for k in self.pool.keyframes), f.min_pixels)
         regions = search_regions(colour.posterior(frame.rgb), frame.depth, frame.K, self.recent[-1].pose[:3, 3],
                                  self._reach(frame.index, capped=False), pre.search_mask_colour,
                                  (f.min_pixels, 3 * seen), f.search_regions)
@@ -605,6 +605,17 @@ class SurgTracker:
     def _confidence(self, node: _Node) -> float:
         """Fraction of the frame's points within assoc_dist of the model."""
         return float(np.mean(np.isfinite(self._model_distances(node))))
+
+    def _keyframe_worthy(self, obs: Observation) -> bool:
+        """Whether a tracked frame may join the memory pool (eq. 6): a frame that came with its mask may; one whose
+        mask was predicted (`_predicted_mask`) only when the mask covers at least ``pool.min_predicted_area`` of the
+        largest keyframe mask. A mostly hidden instrument's predicted mask is mostly the margin around the rendered
+        model, where the fingers holding it or the tissue it touches lie at its depth; as a keyframe those would
+        join the model, and the next predicted masks would take in more of them."""
+        if obs.mask_given or not self.pool.keyframes:
+            return True
+        largest = max(k.area for k in self.pool.keyframes)
+        return np.count_nonzero(obs.mask) >= self.cfg.pool.min_predicted_area * largest
 
     def _add_keyframe(self, node: _Node, obs: Observation) -> None:
         kf = Keyframe(node.frame_id, node.pose, node.features, node.xyz, node.normals, node.K_grid,
