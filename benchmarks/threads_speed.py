@@ -1,0 +1,62 @@
+"""Whole-run tracking speed with the tracker's process on one thread (OpenCV, BLAS, torch) against the default, which
+lets them use every core while the SDF worker process fits on one.
+
+    .venv/bin/python benchmarks/threads_speed.py DATA [--repeats N]
+
+DATA holds rendered sequences, one folder each. Each sequence is tracked with per-frame masks and the default
+configuration (the field fitted in its worker process) in the order A B B A (A: default threads, B: the tracker's
+process on one thread: ``cv2.setNumThreads(1)``, ``torch.set_num_threads(1)`` and OMP/OpenBLAS/MKL at 1), each run in
+a fresh process (the worker inherits the OMP settings; it fits on one torch thread in both arms). Prints each
+sequence's frames/s for A and B and the totals (`recorded.abba`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from recorded import abba, sequences
+
+# Run in a child process; argv: sequence, "1" for one thread; prints {"frames": n, "seconds": s}.
+RUN = """
+import json, sys, tempfile
+if sys.argv[2] == "1":
+    import cv2, torch
+    cv2.setNumThreads(1)
+    torch.set_num_threads(1)
+from surgtrack.io import open_sequence
+from surgtrack.pipeline import track_sequence
+with tempfile.TemporaryDirectory() as out:
+    s = track_sequence(open_sequence(sys.argv[1]), out)
+print(json.dumps({"frames": s.frames, "seconds": s.seconds}))
+"""
+
+
+def run(arm: str, seq: Path) -> tuple[int, float]:
+    """(frames, tracking seconds) of one run of ``arm`` on ``seq``."""
+    one = arm == "B"
+    env = dict(os.environ)
+    if one:
+        env.update(OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    done = subprocess.run([sys.executable, "-c", RUN, str(seq), "1" if one else "0"], env=env, capture_output=True,
+                          text=True, check=False)
+    if done.returncode != 0:
+        raise SystemExit(f"{seq}: run {arm} failed:\n{done.stderr[-2000:]}")
+    result = json.loads(done.stdout.strip().splitlines()[-1])
+    return int(result["frames"]), float(result["seconds"])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("data", type=Path)
+    ap.add_argument("--repeats", type=int, default=1)
+    args = ap.parse_args()
+    abba(sequences(args.data), run, args.repeats)
+
+
+if __name__ == "__main__":
+    main()
