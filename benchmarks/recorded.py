@@ -1,9 +1,13 @@
 """What the speed benchmarks share: for the call-by-call ones (`free_space_cost.py`, `ransac_cost.py`) a tracking run
 with one function's calls recorded and the fastest of several timed replays of them; for the whole-run ones
-(`sdf_speed.py`, `speed_vs_revision.py`) runs of two arms in the order A B B A and their table."""
+(`sdf_speed.py`, `speed_vs_revision.py`, `threads_speed.py`) runs of two arms in the order A B B A, each in a
+fresh process where the script asks for one, and their table."""
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Callable
@@ -63,3 +67,13 @@ def abba(seqs: list[Path], run: Callable[[str, Path], tuple[int, float]], repeat
             totals[arm][1] += per[arm][1]
     fps = {arm: n / t for arm, (n, t) in totals.items()}
     print(f"{'all':<18} {fps['A']:10.2f} {fps['B']:10.2f}  {fps['B'] / fps['A']:.3f}")
+
+
+def child_run(code: str, args: list[str], env: dict[str, str], label: str) -> tuple[int, float]:
+    """Run ``code`` in a fresh Python process with ``args`` and ``env``; it prints {"frames": n, "seconds": s} last.
+    Returns (frames, seconds); a failed run stops the benchmark with its ``label`` and the end of its stderr."""
+    done = subprocess.run([sys.executable, "-c", code, *args], env=env, capture_output=True, text=True, check=False)
+    if done.returncode != 0:
+        raise SystemExit(f"{label} failed:\n{done.stderr[-2000:]}")
+    result = json.loads(done.stdout.strip().splitlines()[-1])
+    return int(result["frames"]), float(result["seconds"])

@@ -14,14 +14,12 @@ end-of-run mesh is not counted). Prints each sequence's frames/s for A and B and
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
-from recorded import abba, sequences
+from recorded import abba, child_run, sequences
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -38,12 +36,7 @@ print(json.dumps({"frames": s.frames, "seconds": s.seconds}))
 
 def timed_run(src: Path, seq: Path) -> tuple[int, float]:
     """(frames, tracking seconds) of one run of the code in ``src`` on ``seq``."""
-    env = {**os.environ, "PYTHONPATH": str(src)}
-    done = subprocess.run([sys.executable, "-c", RUN, str(seq)], env=env, capture_output=True, text=True, check=False)
-    if done.returncode != 0:
-        raise SystemExit(f"{seq}: the run with {src} failed:\n{done.stderr[-2000:]}")
-    result = json.loads(done.stdout.strip().splitlines()[-1])
-    return int(result["frames"]), float(result["seconds"])
+    return child_run(RUN, [str(seq)], {**os.environ, "PYTHONPATH": str(src)}, f"{seq}: the run with {src}")
 
 
 def main() -> None:

@@ -13,13 +13,10 @@ sequence's frames/s for A and B and the totals (`recorded.abba`).
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import subprocess
-import sys
 from pathlib import Path
 
-from recorded import abba, sequences
+from recorded import abba, child_run, sequences
 
 # Run in a child process; argv: sequence, "1" for one thread; prints {"frames": n, "seconds": s}.
 RUN = """
@@ -42,12 +39,7 @@ def run(arm: str, seq: Path) -> tuple[int, float]:
     env = dict(os.environ)
     if one:
         env.update(OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
-    done = subprocess.run([sys.executable, "-c", RUN, str(seq), "1" if one else "0"], env=env, capture_output=True,
-                          text=True, check=False)
-    if done.returncode != 0:
-        raise SystemExit(f"{seq}: run {arm} failed:\n{done.stderr[-2000:]}")
-    result = json.loads(done.stdout.strip().splitlines()[-1])
-    return int(result["frames"]), float(result["seconds"])
+    return child_run(RUN, [str(seq), "1" if one else "0"], env, f"{seq}: run {arm}")
 
 
 def main() -> None:
