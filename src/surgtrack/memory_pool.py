@@ -69,9 +69,15 @@ class MemoryPool:
     def __len__(self) -> int:
         return len(self.keyframes)
 
-    def should_add(self, pose: np.ndarray) -> bool:
-        """Add rule: rotation differs by >= keyframe_rot_deg from every keyframe."""
-        return all(rotation_gap_deg(pose, k.pose) >= self.cfg.keyframe_rot_deg for k in self.keyframes)
+    def should_add(self, pose: np.ndarray, predicted_area: int | None = None) -> bool:
+        """Add rule: rotation differs by >= keyframe_rot_deg from every keyframe; for a frame whose mask was
+        predicted (``predicted_area``, its pixels), the mask also covers at least ``min_predicted_area`` of the
+        largest keyframe mask. A mostly hidden instrument's predicted mask is mostly the margin around the rendered
+        model, where the fingers holding it lie at its depth; as a keyframe they would join the model."""
+        if not all(rotation_gap_deg(pose, k.pose) >= self.cfg.keyframe_rot_deg for k in self.keyframes):
+            return False
+        return (predicted_area is None or not self.keyframes
+                or predicted_area >= self.cfg.min_predicted_area * max(k.area for k in self.keyframes))
 
     def add(self, kf: Keyframe) -> None:
         self.keyframes.append(kf)

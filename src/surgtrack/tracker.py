@@ -265,7 +265,8 @@ class SurgTracker:
         self.lost = False
         self.frames_lost = 0
         self.recent.append(node)
-        if self.cfg.pool.enabled and self.pool.should_add(pose) and self._keyframe_worthy(obs):
+        predicted_area = None if obs.mask_given else int(np.count_nonzero(obs.mask))
+        if self.cfg.pool.enabled and self.pool.should_add(pose, predicted_area):
             self._add_keyframe(node, obs)
         clock.lap("pool")
         return TrackResult(pose, status, confidence, clock.laps, inliers)
@@ -605,17 +606,6 @@ class SurgTracker:
     def _confidence(self, node: _Node) -> float:
         """Fraction of the frame's points within assoc_dist of the model."""
         return float(np.mean(np.isfinite(self._model_distances(node))))
-
-    def _keyframe_worthy(self, obs: Observation) -> bool:
-        """Whether a tracked frame may join the memory pool (eq. 6): a frame that came with its mask may; one whose
-        mask was predicted (`_predicted_mask`) only when the mask covers at least ``pool.min_predicted_area`` of the
-        largest keyframe mask. A mostly hidden instrument's predicted mask is mostly the margin around the rendered
-        model, where the fingers holding it or the tissue it touches lie at its depth; as a keyframe those would
-        join the model, and the next predicted masks would take in more of them."""
-        if obs.mask_given or not self.pool.keyframes:
-            return True
-        largest = max(k.area for k in self.pool.keyframes)
-        return np.count_nonzero(obs.mask) >= self.cfg.pool.min_predicted_area * largest
 
     def _add_keyframe(self, node: _Node, obs: Observation) -> None:
         kf = Keyframe(node.frame_id, node.pose, node.features, node.xyz, node.normals, node.K_grid,
