@@ -69,6 +69,7 @@ class _Node:
     xyz: np.ndarray
     normals: np.ndarray
     K_grid: np.ndarray
+    distances: tuple[bytes, cKDTree | None, np.ndarray] | None = field(default=None, repr=False)  # of its pose
 
     @cached_property
     def grid_points(self) -> GridPoints:
@@ -581,12 +582,16 @@ class SurgTracker:
 
     def _model_distances(self, node: _Node) -> np.ndarray:
         """Distance of each of the frame's points, in the object frame, to the model built so far (inf beyond
-        assoc_dist)."""
+        assoc_dist); kept on the node for its pose and this model (the jump check and the confidence ask twice)."""
+        if (node.distances is not None and node.distances[0] == node.pose.tobytes()
+                and node.distances[1] is self._model_tree):
+            return node.distances[2]
         pts = node.xyz[node.xyz[..., 2] > 0]
         if len(pts) == 0 or self._model_tree is None:
             return np.full(1, np.inf)
         dist, _ = self._model_tree.query(transform(inv_T(node.pose), pts),
                                          distance_upper_bound=self.cfg.graph.assoc_dist)
+        node.distances = (node.pose.tobytes(), self._model_tree, dist)
         return dist
 
     def _appearance(self, pose: np.ndarray, points: np.ndarray, values: np.ndarray) -> float | None:
@@ -610,6 +615,7 @@ class SurgTracker:
     def _add_keyframe(self, node: _Node, obs: Observation) -> None:
         kf = Keyframe(node.frame_id, node.pose, node.features, node.xyz, node.normals, node.K_grid,
                       obs.frame.depth, obs.mask, obs.K, image=intensity(obs.frame.rgb))
+        kf.grid_points = node.grid_points  # the same grid: its points were found once, for the frame
         self.pool.add(kf)
         self._remember_points(kf)
         self._keyframes_added += 1
