@@ -7,7 +7,8 @@ sequences of the same names, e.g. ``bench_out/data``. The poses are aligned at t
 aligns them; the shaft is the first principal axis of the evaluation's model points (the surface the video shows).
 For each frame, E = gt^-1 pose maps the model as tracked onto the model as it is: the turn is the twist of E's
 rotation about the shaft, the slide the part of the points' centroid displacement along it. Printed: the median and
-the 90th percentile over the frames.
+the 90th percentile over the frames, and the ADD AUC (lost frames counted as `surgtrack eval` counts them) as
+tracked, with the turn taken out of every pose, with the slide taken out, and with both: what each costs.
 """
 
 from __future__ import annotations
@@ -16,13 +17,26 @@ import numpy as np
 from result_runs import result_runs
 from scipy.spatial.transform import Rotation
 
-from surgtrack.geometry import inv_T
-from surgtrack.metrics import align_first_frame, alignment_anchor, model_points
+from surgtrack.geometry import inv_T, make_T
+from surgtrack.metrics import add_errors, align_first_frame, alignment_anchor, auc, model_points
+
+
+def without(E: np.ndarray, centre: np.ndarray, axis: np.ndarray, turn: bool, slide: bool) -> np.ndarray:
+    """The error E with its twist about the shaft (the axis through ``centre``) and/or its slide along it removed."""
+    if turn:
+        q = Rotation.from_matrix(E[:3, :3]).as_quat()
+        R = Rotation.from_rotvec(2 * np.arctan2(q[:3] @ axis, q[3]) * axis).as_matrix()
+        E = E @ inv_T(make_T(R, centre - R @ centre))
+    if slide:
+        E = E.copy()
+        E[:3, 3] -= ((E[:3, :3] @ centre + E[:3, 3] - centre) @ axis) * axis
+    return E
 
 
 def main() -> None:
+    totals = []
     for out, seq, gt, est in result_runs(__doc__.splitlines()[0], "ob_in_cam"):
-        ids = [i for i in seq.ids if i in gt and i in est]
+        ids = [i for i in seq.ids if i in gt]
         anchor = alignment_anchor(est, gt, ids)
         aligned = align_first_frame(est, est[anchor], gt[anchor])
         pts = model_points(seq.gt_visible_points(), seq.gt_model())
@@ -42,7 +56,15 @@ def main() -> None:
         def stat(x: list[float]) -> str:
             return f"{np.median(x):5.1f} / {np.percentile(x, 90):5.1f}"
 
-        print(f"{out.name:18} turn {stat(turn)} deg   slide {stat(slide)} cm   across {stat(rest)} cm")
+        G = [gt[i] for i in ids]
+        aucs = [auc(add_errors([None if i not in aligned else gt[i] @ without(inv_T(gt[i]) @ aligned[i], centre,
+                                                                               axis, t, s) for i in ids], G, pts))
+                for t, s in ((False, False), (True, False), (False, True), (True, True))]
+        totals.append(aucs)
+        print(f"{out.name:18} turn {stat(turn)} deg   slide {stat(slide)} cm   across {stat(rest)} cm   "
+              f"ADD AUC {' / '.join(f'{a:5.2f}' for a in aucs)}")
+    print(f"{'mean':18} ADD AUC as tracked / without the turn / without the slide / without both: "
+          f"{' / '.join(f'{a:5.2f}' for a in np.mean(totals, axis=0))}")
 
 
 if __name__ == "__main__":
