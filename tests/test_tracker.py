@@ -277,6 +277,29 @@ def test_a_pose_slid_along_the_shaft_loses_to_the_prediction_the_model_fits(synt
     assert tracker._checked_jump(obs, feats, slid) is slid  # the check off
 
 
+def test_a_frames_fit_to_the_model_follows_its_pose_and_the_model(synth_seq):
+    """The confidence (the share of a frame's points near the model) is worked out once for a node's pose and kept;
+    it is found again when the pose moves, even in place, and when the model grows."""
+    from scipy.spatial import cKDTree
+
+    from surgtrack.preprocess import preprocess
+
+    seq = open_sequence(synth_seq)
+    cfg = TrackerConfig()
+    cfg.sdf.enabled = False
+    tracker = tracked(seq, cfg, 6)
+    obs = preprocess(seq[6], seq[6].mask, cfg.preprocess)
+    node = tracker._node(obs, tracker.extractor(obs), tracker.recent[-1].pose.copy())
+    at = tracker._confidence(node)
+    assert at > 0.9
+    node.pose[:3, 3] += [0.0, 0.1, 0.0]  # 10 cm off, moved in place
+    assert tracker._confidence(node) < 0.2
+    node.pose[:3, 3] -= [0.0, 0.1, 0.0]
+    assert tracker._confidence(node) == at
+    tracker._model_tree = cKDTree(tracker.model_points + [0.1, 0.0, 0.0])  # a model elsewhere
+    assert tracker._confidence(node) < 0.2
+
+
 def test_free_space_acts_on_frames_that_came_with_their_mask(synth_seq, monkeypatch):
     """L_FS (graph.w_fs) refines the pose of a frame given with its mask; a frame without one is masked from the
     model's prediction, whose surroundings are not known to be free, and is refined without it unless
