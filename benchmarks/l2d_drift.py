@@ -5,9 +5,9 @@
 SEQ is a rendered sequence (ground-truth poses). The frame and the frames ``--refs`` before it (the keyframes, held
 fixed) enter the posture graph at their true poses, with the sequence's per-frame masks and the default
 preprocessing; only L_2D acts (w_f, w_fs and the motion prior w_m at 0). After 1, 3, 7 (the default), 15 and 30
-Gauss-Newton iterations the frame's error is printed: its rotation, the twist of that rotation about the shaft (the
-first principal axis of the evaluation's model points), and the shift of the points' centroid along the shaft and
-across it. A well-posed energy would leave the true pose where it is.
+Gauss-Newton iterations the frame's error is printed (`shaft_errors.shaft_parts`): its rotation, the twist of that
+rotation about the shaft (the first principal axis of the evaluation's model points), and the shift of the points'
+centroid along the shaft and across it. A well-posed energy would leave the true pose where it is.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import argparse
 from dataclasses import replace
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+from shaft_errors import shaft_of, shaft_parts
 
 from surgtrack.config import TrackerConfig
 from surgtrack.geometry import inv_T, rotation_angle_deg
@@ -35,8 +35,7 @@ def main() -> None:
     seq, cfg = open_sequence(args.seq), TrackerConfig()
     gt = seq.gt_poses()
     pts = model_points(seq.gt_visible_points(), seq.gt_model())
-    centre = pts.mean(axis=0)
-    axis = np.linalg.svd(pts - centre, full_matrices=False)[2][0]
+    centre, axis = shaft_of(pts)
 
     def node(k: int, fixed: bool) -> GraphNode:
         f = seq[k]
@@ -51,12 +50,9 @@ def main() -> None:
         for it in (1, 3, 7, 15, 30):
             g = replace(cfg.graph, w_f=0.0, w_fs=0.0, w_m=0.0, iterations=it)
             E = inv_T(gt[seq[k].id]) @ optimize_graph(nodes, [], g, pairs_2d=pairs)[0]
-            q = Rotation.from_matrix(E[:3, :3]).as_quat()  # x, y, z, w
-            turn = np.degrees(2 * np.arctan2(q[:3] @ axis, abs(q[3])))
-            d = E[:3, :3] @ centre + E[:3, 3] - centre
-            across = np.linalg.norm(d - (d @ axis) * axis)
-            print(f"  {it:2d} iterations: rotation {rotation_angle_deg(E[:3, :3]):6.2f} deg, turn {turn:7.2f} deg, "
-                  f"slide {d @ axis * 1000:6.2f} mm, across {across * 1000:5.2f} mm")
+            turn, slide, across = shaft_parts(E, centre, axis)
+            print(f"  {it:2d} iterations: rotation {rotation_angle_deg(E[:3, :3]):6.2f} deg, turn "
+                  f"{np.degrees(turn):7.2f} deg, slide {slide * 1000:6.2f} mm, across {across * 1000:5.2f} mm")
 
 
 if __name__ == "__main__":

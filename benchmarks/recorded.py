@@ -69,6 +69,17 @@ def abba(seqs: list[Path], run: Callable[[str, Path], tuple[int, float]], repeat
     print(f"{'all':<18} {fps['A']:10.2f} {fps['B']:10.2f}  {fps['B'] / fps['A']:.3f}")
 
 
+# A whole tracking run for `child_run`, with the default configuration and per-frame masks; argv[1]: the sequence.
+TRACK_RUN = """
+import json, sys, tempfile
+from surgtrack.io import open_sequence
+from surgtrack.pipeline import track_sequence
+with tempfile.TemporaryDirectory() as out:
+    s = track_sequence(open_sequence(sys.argv[1]), out)
+print(json.dumps({"frames": s.frames, "seconds": s.seconds}))
+"""
+
+
 def child_run(code: str, args: list[str], env: dict[str, str], label: str) -> tuple[int, float]:
     """Run ``code`` in a fresh Python process with ``args`` and ``env``; it prints {"frames": n, "seconds": s} last.
     Returns (frames, seconds); a failed run stops the benchmark with its ``label`` and the end of its stderr."""

@@ -21,15 +21,30 @@ from surgtrack.geometry import inv_T, make_T
 from surgtrack.metrics import add_errors, align_first_frame, alignment_anchor, auc, model_points
 
 
+def shaft_of(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The shaft of a model's points (object frame): their centroid and first principal axis."""
+    centre = pts.mean(axis=0)
+    return centre, np.linalg.svd(pts - centre, full_matrices=False)[2][0]
+
+
+def shaft_parts(E: np.ndarray, centre: np.ndarray, axis: np.ndarray) -> tuple[float, float, float]:
+    """An error E = gt^-1 pose split along the shaft: the twist of its rotation about the axis (radians, signed),
+    the centroid's displacement along the axis (m, signed) and across it (m)."""
+    q = Rotation.from_matrix(E[:3, :3]).as_quat()  # x, y, z, w
+    q = -q if q[3] < 0 else q
+    d = E[:3, :3] @ centre + E[:3, 3] - centre
+    along = float(d @ axis)
+    return 2 * float(np.arctan2(q[:3] @ axis, q[3])), along, float(np.linalg.norm(d - along * axis))
+
+
 def without(E: np.ndarray, centre: np.ndarray, axis: np.ndarray, turn: bool, slide: bool) -> np.ndarray:
     """The error E with its twist about the shaft (the axis through ``centre``) and/or its slide along it removed."""
     if turn:
-        q = Rotation.from_matrix(E[:3, :3]).as_quat()
-        R = Rotation.from_rotvec(2 * np.arctan2(q[:3] @ axis, q[3]) * axis).as_matrix()
+        R = Rotation.from_rotvec(shaft_parts(E, centre, axis)[0] * axis).as_matrix()
         E = E @ inv_T(make_T(R, centre - R @ centre))
     if slide:
         E = E.copy()
-        E[:3, 3] -= ((E[:3, :3] @ centre + E[:3, 3] - centre) @ axis) * axis
+        E[:3, 3] -= shaft_parts(E, centre, axis)[1] * axis
     return E
 
 
@@ -40,18 +55,14 @@ def main() -> None:
         anchor = alignment_anchor(est, gt, ids)
         aligned = align_first_frame(est, est[anchor], gt[anchor])
         pts = model_points(seq.gt_visible_points(), seq.gt_model())
-        centre = pts.mean(axis=0)
-        axis = np.linalg.svd(pts - centre, full_matrices=False)[2][0]
+        centre, axis = shaft_of(pts)
         turn, slide, rest = [], [], []
         for i in ids:
-            if i not in aligned:
-                continue
-            E = inv_T(gt[i]) @ aligned[i]
-            q = Rotation.from_matrix(E[:3, :3]).as_quat()  # x, y, z, w
-            turn.append(np.degrees(2 * np.arctan2(abs(q[:3] @ axis), abs(q[3]))))
-            d = E[:3, :3] @ centre + E[:3, 3] - centre
-            slide.append(abs(d @ axis) * 100)
-            rest.append(np.linalg.norm(d - (d @ axis) * axis) * 100)
+            if i in aligned:
+                t, along, across = shaft_parts(inv_T(gt[i]) @ aligned[i], centre, axis)
+                turn.append(abs(np.degrees(t)))
+                slide.append(abs(along) * 100)
+                rest.append(across * 100)
 
         def stat(x: list[float]) -> str:
             return f"{np.median(x):5.1f} / {np.percentile(x, 90):5.1f}"

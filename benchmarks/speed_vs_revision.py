@@ -19,24 +19,15 @@ import subprocess
 import tempfile
 from pathlib import Path
 
-from recorded import abba, child_run, sequences
+from recorded import TRACK_RUN, abba, child_run, sequences
 
 REPO = Path(__file__).resolve().parents[1]
 
-# Run in a child process, with the code to time first on sys.path; prints {"frames": n, "seconds": s}.
-RUN = """
-import json, sys, tempfile
-from surgtrack.io import open_sequence
-from surgtrack.pipeline import track_sequence
-with tempfile.TemporaryDirectory() as out:
-    s = track_sequence(open_sequence(sys.argv[1]), out)
-print(json.dumps({"frames": s.frames, "seconds": s.seconds}))
-"""
 
 
 def timed_run(src: Path, seq: Path) -> tuple[int, float]:
     """(frames, tracking seconds) of one run of the code in ``src`` on ``seq``."""
-    return child_run(RUN, [str(seq)], {**os.environ, "PYTHONPATH": str(src)}, f"{seq}: the run with {src}")
+    return child_run(TRACK_RUN, [str(seq)], {**os.environ, "PYTHONPATH": str(src)}, f"{seq}: the run with {src}")
 
 
 def main() -> None:

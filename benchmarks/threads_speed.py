@@ -16,21 +16,16 @@ import argparse
 import os
 from pathlib import Path
 
-from recorded import abba, child_run, sequences
+from recorded import TRACK_RUN, abba, child_run, sequences
 
-# Run in a child process; argv: sequence, "1" for one thread; prints {"frames": n, "seconds": s}.
+# `recorded.TRACK_RUN`, first on one thread when argv[2] is "1".
 RUN = """
-import json, sys, tempfile
+import sys
 if sys.argv[2] == "1":
     import cv2, torch
     cv2.setNumThreads(1)
     torch.set_num_threads(1)
-from surgtrack.io import open_sequence
-from surgtrack.pipeline import track_sequence
-with tempfile.TemporaryDirectory() as out:
-    s = track_sequence(open_sequence(sys.argv[1]), out)
-print(json.dumps({"frames": s.frames, "seconds": s.seconds}))
-"""
+""" + TRACK_RUN
 
 
 def run(arm: str, seq: Path) -> tuple[int, float]:
