@@ -196,6 +196,33 @@ def test_tracks_from_the_first_mask_only(synth_seq, tmp_path):
 
 
 
+def test_a_frame_with_its_mask_takes_fewer_gauss_newton_steps(synth_seq, monkeypatch):
+    """A frame that came with its mask is solved in ``graph.given_mask_iterations`` steps, one whose mask was
+    predicted in ``graph.iterations``: its mask is made again at the pose the steps reach."""
+    import surgtrack.tracker as tracker_module
+
+    steps: list[int] = []
+    solve = tracker_module.optimize_graph
+
+    def counted(nodes, edges, cfg, *args, **kwargs):
+        steps.append(cfg.iterations)
+        return solve(nodes, edges, cfg, *args, **kwargs)
+
+    monkeypatch.setattr(tracker_module, "optimize_graph", counted)
+    seq = open_sequence(synth_seq)
+    cfg = TrackerConfig()
+    cfg.sdf.enabled = False
+    cfg.graph.iterations, cfg.graph.given_mask_iterations = 5, 2
+    tracker = SurgTracker(cfg)
+    tracker.register(seq[0], seq[0].mask)
+    steps.clear()
+    assert tracker.track(seq[1], seq[1].mask).status == "tracked"
+    assert steps and set(steps) == {2}, steps
+    steps.clear()
+    assert tracker.track(seq[2], None).status == "tracked"
+    assert steps and set(steps) == {5}, steps
+
+
 @pytest.mark.parametrize("min_area", [0.5, 0.0])
 def test_a_mostly_hidden_instrument_without_its_mask_does_not_become_a_keyframe(synth_seq, min_area):
     """Tracked without a mask, a frame whose predicted mask covers less than ``pool.min_predicted_area`` of the

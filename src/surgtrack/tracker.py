@@ -535,7 +535,9 @@ class SurgTracker:
         and ``failure.relocalise_w_m``. With ``obs`` and ``graph.w_fs`` set, L_FS keeps the model out of what the
         frame saw past (`posture_graph.FreeSpace`), when the frame came with its mask: a mask predicted from the
         model (or a colour region while lost) leaves out what the model's pose leaves out, and the background beside
-        it is not known to be free (``graph.free_space_predicted`` trusts it all the same)."""
+        it is not known to be free (``graph.free_space_predicted`` trusts it all the same). A frame that came with its
+        mask takes ``graph.given_mask_iterations`` Gauss-Newton steps, one on a predicted mask ``graph.iterations``:
+        its mask is found again at the pose they reach (`_remasked`), which fewer steps leave short."""
         others: list[_Node | Keyframe] = [e[0] for e in edges]
         prior = node.pose.copy()
         for prev in reversed(self.recent):
@@ -555,6 +557,8 @@ class SurgTracker:
         use_sdf = self.sdf is not None and self._field_agrees(node)
         pairs = [p for j in range(1, len(nodes)) for p in ((0, j), (j, 0))]  # the other poses are fixed
         cfg = self.cfg.graph
+        if obs is not None and obs.mask_given:
+            cfg = replace(cfg, iterations=cfg.given_mask_iterations)
         if candidate:
             cfg = replace(cfg, prior_null=self.cfg.failure.relocalise_prior_null, w_m=self.cfg.failure.relocalise_w_m)
         free_space = None
