@@ -24,7 +24,6 @@ from recorded import TRACK_RUN, abba, child_run, sequences
 REPO = Path(__file__).resolve().parents[1]
 
 
-
 def timed_run(src: Path, seq: Path) -> tuple[int, float]:
     """(frames, tracking seconds) of one run of the code in ``src`` on ``seq``."""
     return child_run(TRACK_RUN, [str(seq)], {**os.environ, "PYTHONPATH": str(src)}, f"{seq}: the run with {src}")

@@ -195,7 +195,6 @@ def test_tracks_from_the_first_mask_only(synth_seq, tmp_path):
     assert min(iou) > 0.78 and np.mean(iou) > 0.87, iou  # not masked again: mean 0.85
 
 
-
 def test_a_frame_with_its_mask_takes_fewer_gauss_newton_steps(synth_seq, monkeypatch):
     """A frame that came with its mask is solved in ``graph.given_mask_iterations`` steps, one whose mask was
     predicted in ``graph.iterations``: its mask is made again at the pose the steps reach."""

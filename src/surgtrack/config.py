@@ -75,8 +75,8 @@ class GraphConfig:
     w_p: float = 1.0  # weight of L_2D, projective point-to-plane
     w_s: float = 1.0  # weight of L_SDF, once the field has converged
     huber_delta: float = 0.005  # m
-    iterations: int = 7  # Gauss-Newton steps for a frame tracked on a predicted mask (first mask only)
-    given_mask_iterations: int = 4  # for a frame that came with its mask: its associations need fewer
+    iterations: int = 7  # Gauss-Newton steps for a frame without a given mask (predicted, or a region while lost)
+    given_mask_iterations: int = 4  # for a frame that came with its mask (no mask made again at the pose reached)
     depth_downscale: int = 2  # projective association on depth downscaled by this factor (at 640 px width)
     assoc_dist: float = 0.02  # m gate of projective association
     assoc_normal_deg: float = 45.0
