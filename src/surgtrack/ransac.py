@@ -56,14 +56,21 @@ def _samples(n: int, hypotheses: int, rng: np.random.Generator) -> np.ndarray:
     return rng.integers(0, n, size=(hypotheses, 3))
 
 
-def _triangle_height(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """Height of each triangle (a, b, c) over its longest side; 0 for collinear or coincident points."""
-    area2 = np.linalg.norm(np.cross(b - a, c - a), axis=-1)
-    longest = np.max(
-        np.stack([np.linalg.norm(b - a, axis=-1), np.linalg.norm(c - a, axis=-1), np.linalg.norm(c - b, axis=-1)]),
-        axis=0,
-    )
-    return area2 / np.maximum(longest, 1e-12)
+def _lengths(v: np.ndarray) -> np.ndarray:
+    """Euclidean norm along the last axis of (..., 3), as np.linalg.norm computes it, without its per-call cost."""
+    return np.sqrt(v[..., 0] * v[..., 0] + v[..., 1] * v[..., 1] + v[..., 2] * v[..., 2])
+
+
+def _spread_and_sides(P: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+    """For triangles P (H, 3, 3): the height over the longest side (0 for collinear or coincident points) and the
+    side lengths |P0 - P1|, |P0 - P2|, |P1 - P2|."""
+    a, b, c = P[:, 0], P[:, 1], P[:, 2]
+    u, v = b - a, c - a
+    cross = np.stack([u[:, 1] * v[:, 2] - u[:, 2] * v[:, 1], u[:, 2] * v[:, 0] - u[:, 0] * v[:, 2],
+                      u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]], axis=-1)
+    sides = [_lengths(u), _lengths(v), _lengths(c - b)]
+    longest = np.maximum(np.maximum(sides[0], sides[1]), sides[2])
+    return _lengths(cross) / np.maximum(longest, 1e-12), sides
 
 
 def _batched_kabsch(S: np.ndarray, D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -120,7 +127,7 @@ def _inliers_of(
     cos_thr: float,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Inlier mask of a single transform and the residual distance of every match."""
-    r = np.linalg.norm(src @ T[:3, :3].T + T[:3, 3] - dst, axis=1)
+    r = _lengths(src @ T[:3, :3].T + T[:3, 3] - dst)
     inl = r < thr
     if src_n is not None and dst_n is not None:
         inl &= np.einsum("ij,ij->i", src_n @ T[:3, :3].T, dst_n) > cos_thr
@@ -167,13 +174,11 @@ def ransac_pose(
 
     idx = _samples(n, cfg.hypotheses, rng)
     S, D = s[idx], d[idx]
-    valid = (_triangle_height(S[:, 0], S[:, 1], S[:, 2]) >= cfg.min_sample_spread) & (
-        _triangle_height(D[:, 0], D[:, 1], D[:, 2]) >= cfg.min_sample_spread
-    )
-    for a, b in ((0, 1), (0, 2), (1, 2)):
-        ls = np.linalg.norm(S[:, a] - S[:, b], axis=1)
-        ld = np.linalg.norm(D[:, a] - D[:, b], axis=1)
-        valid &= np.abs(ls - ld) < 2.0 * thr
+    hs, ls = _spread_and_sides(S)
+    hd, ld = _spread_and_sides(D)
+    valid = (hs >= cfg.min_sample_spread) & (hd >= cfg.min_sample_spread)
+    for k in range(3):
+        valid &= np.abs(ls[k] - ld[k]) < 2.0 * thr
     if not valid.any():
         return _failure(n)
     S, D = S[valid], D[valid]

@@ -1,0 +1,29 @@
+"""Geometry helpers the tracker's model relies on."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from surgtrack.geometry import voxel_downsample
+
+
+def first_per_voxel(p: np.ndarray, voxel: float) -> np.ndarray:
+    """Reference: walk the points in order, keep each one whose voxel has not been seen."""
+    seen, keep = set(), []
+    for i, key in enumerate(map(tuple, np.floor(p / voxel).astype(np.int64))):
+        if key not in seen:
+            seen.add(key)
+            keep.append(i)
+    return p[keep]
+
+
+@pytest.mark.parametrize("spread", [0.03, 1e15])  # an instrument's cloud; a range too wide for one int64 key
+def test_voxel_downsample_keeps_the_first_point_of_each_voxel_in_order(spread: float) -> None:
+    rng = np.random.default_rng(3)
+    p = rng.normal(size=(4000, 3)) * 0.03
+    p[::7] = p[::3][: len(p[::7])]  # repeated points fall into occupied voxels
+    p[0] = [-spread, 0.0, spread]
+    out = voxel_downsample(p, 0.002)
+    np.testing.assert_array_equal(out, first_per_voxel(p, 0.002))
+    assert len(out) < len(p)
