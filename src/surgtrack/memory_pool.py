@@ -14,7 +14,6 @@ import numpy as np
 
 from .config import PoolConfig
 from .features import Features
-from .geometry import rotation_angle_deg
 from .posture_graph import GridPoints
 
 
@@ -54,9 +53,11 @@ class Keyframe:
         return self.pose[2, :3]
 
 
-def rotation_gap_deg(Ta: np.ndarray, Tb: np.ndarray) -> float:
-    """Angle of the relative rotation between two poses, degrees."""
-    return rotation_angle_deg(Ta[:3, :3] @ Tb[:3, :3].T)
+def rotation_gaps_deg(T: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """Angle of the relative rotation between pose ``T`` and each of ``poses`` (n, 4, 4), degrees: trace(R R_k^T)
+    is the sum of the elementwise product of the two rotations."""
+    cos = ((T[None, :3, :3] * poses[:, :3, :3]).sum(axis=(1, 2)) - 1.0) / 2.0
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
 
 
 class MemoryPool:
@@ -74,10 +75,14 @@ class MemoryPool:
         predicted (``predicted_area``, its pixels), the mask also covers at least ``min_predicted_area`` of the
         largest keyframe mask. A mostly hidden instrument's predicted mask is mostly the margin around the rendered
         model, where the fingers holding it lie at its depth; as a keyframe they would join the model."""
-        if not all(rotation_gap_deg(pose, k.pose) >= self.cfg.keyframe_rot_deg for k in self.keyframes):
+        if self.keyframes and rotation_gaps_deg(pose, self.poses()).min() < self.cfg.keyframe_rot_deg:
             return False
         return (predicted_area is None or not self.keyframes
                 or predicted_area >= self.cfg.min_predicted_area * max(k.area for k in self.keyframes))
+
+    def poses(self) -> np.ndarray:
+        """The keyframes' poses, (n, 4, 4)."""
+        return np.stack([k.pose for k in self.keyframes])
 
     def add(self, kf: Keyframe) -> None:
         self.keyframes.append(kf)
@@ -98,9 +103,11 @@ class MemoryPool:
         overlap_normal_deg), nearest in viewing direction first."""
         if not self.keyframes:
             return []
-        d = pose[2, :3]
         cands = [k for k in self.keyframes if k.frame_id not in exclude]
-        ang = np.array([np.degrees(np.arccos(np.clip(k.view_dir @ d, -1, 1))) for k in cands])
+        if not cands:
+            return []
+        dirs = np.stack([k.view_dir for k in cands])
+        ang = np.degrees(np.arccos(np.clip(dirs @ pose[2, :3], -1, 1)))
         order = np.argsort(ang)
         limit = self.cfg.overlap_normal_deg if within_deg is None else within_deg
         return [cands[i] for i in order if ang[i] <= limit][:n]
