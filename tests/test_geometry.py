@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from surgtrack.geometry import voxel_downsample
+from surgtrack.geometry import make_T, rotation_angle_deg, rotation_gaps_deg, so3_exp, voxel_downsample
 
 
 def first_per_voxel(p: np.ndarray, voxel: float) -> np.ndarray:
@@ -27,3 +27,13 @@ def test_voxel_downsample_keeps_the_first_point_of_each_voxel_in_order(spread: f
     out = voxel_downsample(p, 0.002)
     np.testing.assert_array_equal(out, first_per_voxel(p, 0.002))
     assert len(out) < len(p)
+
+
+def test_rotation_gaps_to_many_poses_equal_the_angle_of_each_relative_rotation() -> None:
+    rng = np.random.default_rng(4)
+    T = make_T(so3_exp(rng.normal(size=3)), rng.normal(size=3))
+    poses = np.stack([make_T(so3_exp(rng.normal(size=3) * s), rng.normal(size=3)) for s in (0.0, 0.01, 0.5, 3.0)])
+    poses[0][:3, :3] = T[:3, :3]  # no gap at all
+    want = [rotation_angle_deg(T[:3, :3] @ P[:3, :3].T) for P in poses]
+    np.testing.assert_allclose(rotation_gaps_deg(T, poses), want, atol=1e-5)
+    assert rotation_gaps_deg(T, poses)[0] < 1e-5

@@ -82,6 +82,13 @@ def rotation_angle_deg(R: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
 
 
+def rotation_gaps_deg(T: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """Geodesic angle of the relative rotation between pose ``T`` and each of ``poses`` (n, 4, 4), degrees, at once:
+    trace(R R_k^T) is the sum of the elementwise product of the two rotations."""
+    cos = ((T[None, :3, :3] * poses[:, :3, :3]).sum(axis=(1, 2)) - 1.0) / 2.0
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
 def kabsch(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
     """Least-squares rigid T with dst ~ T @ src (Kabsch/Umeyama without scale), optional weights."""
     w = np.ones(len(src)) if w is None else w

@@ -14,6 +14,7 @@ import numpy as np
 
 from .config import PoolConfig
 from .features import Features
+from .geometry import rotation_gaps_deg
 from .posture_graph import GridPoints
 
 
@@ -51,13 +52,6 @@ class Keyframe:
     def view_dir(self) -> np.ndarray:
         """The camera's optical axis in the object frame."""
         return self.pose[2, :3]
-
-
-def rotation_gaps_deg(T: np.ndarray, poses: np.ndarray) -> np.ndarray:
-    """Angle of the relative rotation between pose ``T`` and each of ``poses`` (n, 4, 4), degrees: trace(R R_k^T)
-    is the sum of the elementwise product of the two rotations."""
-    cos = ((T[None, :3, :3] * poses[:, :3, :3]).sum(axis=(1, 2)) - 1.0) / 2.0
-    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
 
 
 class MemoryPool:
@@ -101,8 +95,6 @@ class MemoryPool:
                within_deg: float | None = None) -> list[Keyframe]:
         """Up to n keyframes whose view overlaps the current one (optical axes within ``within_deg``, by default
         overlap_normal_deg), nearest in viewing direction first."""
-        if not self.keyframes:
-            return []
         cands = [k for k in self.keyframes if k.frame_id not in exclude]
         if not cands:
             return []
