@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+import surgtrack.tracker
 from surgtrack.config import TrackerConfig
 from surgtrack.geometry import inv_T, make_T, project, rotation_angle_deg
 from surgtrack.io import open_sequence
@@ -215,3 +216,40 @@ def test_without_masks_a_nearer_look_alike_does_not_take_the_relocalisation(synt
     assert pose is not None
     u1, v1 = project(pose[:3, 3][None], frame.K)[0][0]
     assert np.hypot(u1 - (u0 + du), v1 - (v0 + dv)) < 6
+
+
+def test_without_masks_the_search_starts_where_the_instrument_was_last_seen(synth_seq, monkeypatch):
+    """The colour regions are ranked by their distance to where the instrument was last seen: the last tracked
+    frame's points, not its object origin (the first frame's centroid), which lies mid-shaft when only one end of
+    the shaft showed last."""
+    seq = open_sequence(synth_seq)
+    cfg = _relocalising_every_frame()
+    cfg.failure.min_pixels = 50  # one end of a shaft at 320 x 240
+    tracker = SurgTracker(cfg)
+    tracker.register(seq[0], seq[0].mask)
+    tracker.track(seq[1], seq[1].mask)
+    frame = seq[2]
+    v, u = np.nonzero(frame.mask)
+    shaft = np.linalg.eigh(np.cov(np.stack([u, v])))[1][:, -1]
+    u0, v0 = project(tracker.recent[-1].pose[:3, 3][None], frame.K)[0][0]
+    along = (u - u0) * shaft[0] + (v - v0) * shaft[1]
+    end = frame.mask.copy()
+    end[v, u] = along > 30 if (along > 30).sum() > (along < -30).sum() else along < -30  # one end, 30 px on
+    assert tracker.track(frame, end).status != LOST
+    pts = tracker.recent[-1].xyz[tracker.recent[-1].xyz[..., 2] > 0]
+    seen = np.median(pts, axis=0)
+    origin = tracker.recent[-1].pose[:3, 3]
+    assert np.linalg.norm(origin - seen) > 0.02
+    assert tracker.track(seq[3], np.zeros_like(seq[3].mask)).status == LOST
+
+    centres = []
+    search = surgtrack.tracker.search_regions
+
+    def recorded(posterior, depth, K, centre, *args, **kwargs):  # noqa: ANN001, ANN202 - a transparent wrapper
+        centres.append(np.array(centre))
+        return search(posterior, depth, K, centre, *args, **kwargs)
+
+    monkeypatch.setattr(surgtrack.tracker, "search_regions", recorded)
+    tracker.track(seq[4], None)
+    assert len(centres) == 1
+    assert np.linalg.norm(centres[0] - seen) < 1e-6

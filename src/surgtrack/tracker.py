@@ -318,7 +318,7 @@ class SurgTracker:
         shaft), and the pose found on it is held to the cap anyway."""
         f, pre = self.cfg.failure, self.cfg.preprocess
         seen = max(max(k.area for k in self.pool.keyframes), f.min_pixels)
-        regions = search_regions(colour.posterior(frame.rgb), frame.depth, frame.K, self.recent[-1].pose[:3, 3],
+        regions = search_regions(colour.posterior(frame.rgb), frame.depth, frame.K, self._last_seen(),
                                  self._reach(frame.index, capped=False), pre.search_mask_colour,
                                  (f.min_pixels, 3 * seen), f.search_regions)
         clock.lap("preprocess")
@@ -342,6 +342,14 @@ class SurgTracker:
             best = (obs, node, best[2])
             clock.lap("remask")
         return best
+
+    def _last_seen(self) -> np.ndarray:
+        """Where the instrument was last seen (camera frame): the median of the last tracked frame's points. Its
+        object origin (the first frame's centroid) can lie a hand's width away along a shaft whose other end is
+        what shows now."""
+        last = self.recent[-1]
+        pts = last.xyz[last.xyz[..., 2] > 0]
+        return np.median(pts, axis=0) if len(pts) else last.pose[:3, 3]
 
     def _colour(self) -> ColourModel | None:
         """The colour model, when a colour gate, the mask's growth or the lost search uses it."""
