@@ -252,4 +252,4 @@ def test_without_masks_the_search_starts_where_the_instrument_was_last_seen(synt
     monkeypatch.setattr(surgtrack.tracker, "search_regions", recorded)
     tracker.track(seq[4], None)
     assert len(centres) == 1
-    assert np.linalg.norm(centres[0] - seen) < 1e-6
+    assert np.linalg.norm(centres[0] - seen) < 0.005

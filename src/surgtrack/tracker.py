@@ -344,11 +344,11 @@ class SurgTracker:
         return best
 
     def _last_seen(self) -> np.ndarray:
-        """Where the instrument was last seen (camera frame): the median of the last tracked frame's points. Its
-        object origin (the first frame's centroid) can lie a hand's width away along a shaft whose other end is
-        what shows now."""
+        """Where the instrument was last seen (camera frame): the median of the last tracked frame's grid points
+        (those its graph solve used). Its object origin (the first frame's centroid) can lie a hand's width away
+        along a shaft whose other end is what shows now."""
         last = self.recent[-1]
-        pts = last.xyz[last.xyz[..., 2] > 0]
+        pts = last.grid_points.p
         return np.median(pts, axis=0) if len(pts) else last.pose[:3, 3]
 
     def _colour(self) -> ColourModel | None:
