@@ -69,13 +69,14 @@ def abba(seqs: list[Path], run: Callable[[str, Path], tuple[int, float]], repeat
     print(f"{'all':<18} {fps['A']:10.2f} {fps['B']:10.2f}  {fps['B'] / fps['A']:.3f}")
 
 
-# A whole tracking run for `child_run`, with the default configuration and per-frame masks; argv[1]: the sequence.
+# A whole tracking run for `child_run`, with the default configuration; argv[1]: the sequence; per-frame masks, or the
+# first frame's mask only when the last argument is --first-mask-only.
 TRACK_RUN = """
 import json, sys, tempfile
 from surgtrack.io import open_sequence
 from surgtrack.pipeline import track_sequence
 with tempfile.TemporaryDirectory() as out:
-    s = track_sequence(open_sequence(sys.argv[1]), out)
+    s = track_sequence(open_sequence(sys.argv[1]), out, first_mask_only=sys.argv[-1] == "--first-mask-only")
 print(json.dumps({"frames": s.frames, "seconds": s.seconds}))
 """
 

@@ -24,12 +24,19 @@ def render_depth(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, shape:
     v = np.round(uv[:, 1]).astype(int)
     inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
     u, v, z = u[inside], v[inside], z[inside]
-    depth = np.full((h, w), np.inf, np.float32)
-    np.minimum.at(depth, (v, u), z.astype(np.float32))
+    depth = np.zeros((h, w), np.float32)
+    if len(z) == 0:
+        return depth
+    # the box around the projections, plus the splat: nothing renders outside it
+    u0, v0 = max(int(u.min()) - splat, 0), max(int(v.min()) - splat, 0)
+    u1, v1 = min(int(u.max()) + splat + 1, w), min(int(v.max()) + splat + 1, h)
+    box = np.full((v1 - v0, u1 - u0), np.inf, np.float32)
+    np.minimum.at(box, (v - v0, u - u0), z.astype(np.float32))
     if splat > 0:
-        depth = -cv2.dilate(-depth, np.ones((2 * splat + 1,) * 2, np.uint8))  # min filter
-    depth[depth >= np.finfo(np.float32).max] = 0  # the min filter pads the border with float32 max
-    depth[~np.isfinite(depth)] = 0
+        box = -cv2.dilate(-box, np.ones((2 * splat + 1,) * 2, np.uint8))  # min filter
+    box[box >= np.finfo(np.float32).max] = 0  # the min filter pads the border with float32 max
+    box[~np.isfinite(box)] = 0
+    depth[v0:v1, u0:u1] = box
     return depth
 
 
