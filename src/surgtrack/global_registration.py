@@ -6,7 +6,8 @@ Used where texture is too weak for feature re-localisation, and to find the firs
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 
 import numpy as np
 import open3d as o3d
@@ -15,6 +16,18 @@ from scipy.spatial import cKDTree
 from .geometry import inv_T, make_T, orthonormalize, transform
 
 _REG = o3d.pipelines.registration
+
+
+@contextmanager
+def one_thread() -> Iterator[None]:
+    """Open3D on one thread within: over several, its RANSAC (and its ICP's sums) depend on which thread finishes
+    first, so the same call with the same seed gives another pose now and then, and tracking runs do not repeat."""
+    before = o3d.utility.get_max_threads()
+    o3d.utility.set_max_threads(1)
+    try:
+        yield
+    finally:
+        o3d.utility.set_max_threads(before)
 
 
 def point_cloud(points: np.ndarray, normals: np.ndarray | None = None, voxel: float = 0.0) -> o3d.geometry.PointCloud:
@@ -41,7 +54,8 @@ def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, max_dists: Seq
     for d in max_dists:
         est = (_REG.TransformationEstimationPointToPoint() if target_normals is None
                else _REG.TransformationEstimationPointToPlane(_REG.TukeyLoss(k=d / 2)))
-        res = _REG.registration_icp(src, tgt, d, T, est, _REG.ICPConvergenceCriteria(max_iteration=iterations))
+        with one_thread():
+            res = _REG.registration_icp(src, tgt, d, T, est, _REG.ICPConvergenceCriteria(max_iteration=iterations))
         T, fitness = np.asarray(res.transformation), float(res.fitness)
     return orthonormalize(inv_T(c) @ T @ c), fitness
 
@@ -68,8 +82,9 @@ def global_register(points_cam: np.ndarray, model_obj: np.ndarray, voxel: float 
     if len(points_cam) < 30 or len(model_obj) < 30:
         return []
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
-    src, src_f = _cloud(model_obj, voxel)
-    dst, dst_f = _cloud(points_cam, voxel)
+    with one_thread():
+        src, src_f = _cloud(model_obj, voxel)
+        dst, dst_f = _cloud(points_cam, voxel)
     if len(src.points) < 10 or len(dst.points) < 10:
         return []
     gate = 2.0 * voxel
@@ -77,11 +92,13 @@ def global_register(points_cam: np.ndarray, model_obj: np.ndarray, voxel: float 
     found = []
     for seed in seeds:
         o3d.utility.random.seed(seed)
-        coarse = _REG.registration_ransac_based_on_feature_matching(
-            src, dst, src_f, dst_f, True, gate, _REG.TransformationEstimationPointToPoint(False), 3,
-            [_REG.CorrespondenceCheckerBasedOnEdgeLength(0.9), _REG.CorrespondenceCheckerBasedOnDistance(gate)],
-            _REG.RANSACConvergenceCriteria(iterations, 0.999))
-        fine = _REG.registration_icp(src, dst, gate, coarse.transformation, _REG.TransformationEstimationPointToPlane())
+        with one_thread():
+            coarse = _REG.registration_ransac_based_on_feature_matching(
+                src, dst, src_f, dst_f, True, gate, _REG.TransformationEstimationPointToPoint(False), 3,
+                [_REG.CorrespondenceCheckerBasedOnEdgeLength(0.9), _REG.CorrespondenceCheckerBasedOnDistance(gate)],
+                _REG.RANSACConvergenceCriteria(iterations, 0.999))
+            fine = _REG.registration_icp(src, dst, gate, coarse.transformation,
+                                         _REG.TransformationEstimationPointToPlane())
         # Point-to-plane ICP can slide off a round shaft it cannot pin: keep whichever pose explains more.
         scored = [(overlap(tree, T, dst_pts, gate), T) for T in (np.array(fine.transformation),
                                                                  np.array(coarse.transformation))]
