@@ -253,3 +253,39 @@ def test_without_masks_the_search_starts_where_the_instrument_was_last_seen(synt
     tracker.track(seq[4], None)
     assert len(centres) == 1
     assert np.linalg.norm(centres[0] - seen) < 0.005
+
+
+def test_without_masks_a_pose_the_camera_sees_through_is_reported_lost(synth_seq):
+    """From frame 4 the instrument is gone (the frame sees 5 cm past where it was) but for a piece of it that stays
+    where frame 3 had it, like a fingertip of its colour at its depth. The model fits the piece, so frame by frame
+    a pose holds; but the camera sees through most of the model's silhouette there, and after
+    ``failure.seen_past_frames`` such frames (two here) the tracker says it has lost the instrument. With the check
+    off it reports every one of those frames tracked."""
+    seq = open_sequence(synth_seq)
+    last = seq[3]
+    v, u = np.mgrid[: last.depth.shape[0], : last.depth.shape[1]]
+
+    def statuses(max_seen_past: float) -> list[str]:
+        cfg = TrackerConfig()
+        cfg.sdf.enabled = False
+        cfg.failure.max_seen_past = max_seen_past
+        cfg.failure.seen_past_frames = 2
+        cfg.failure.min_pixels = 30  # a piece of a shaft at 320 x 240
+        tracker = SurgTracker(cfg)
+        tracker.register(seq[0], seq[0].mask)
+        assert all(tracker.track(seq[i], None).status != LOST for i in range(1, 4))
+        u0, v0 = project(tracker.recent[-1].pose[:3, 3][None], last.K)[0][0]
+        piece = last.mask & (np.abs(u - u0) < 17) & (np.abs(v - v0) < 17) & (last.depth > 0)
+        assert 0.1 * last.mask.sum() < piece.sum() < 0.2 * last.mask.sum()
+        out = []
+        for i in range(4, 10):
+            frame = seq[i]
+            depth = np.where(frame.mask, frame.depth + 0.05 * (frame.depth > 0), frame.depth)
+            depth[piece] = last.depth[piece]
+            rgb = frame.rgb.copy()
+            rgb[piece] = last.rgb[piece]
+            out.append(tracker.track(replace(frame, rgb=rgb, depth=depth), None).status)
+        return out
+
+    assert LOST not in statuses(1.0)
+    assert LOST in statuses(TrackerConfig().failure.max_seen_past)[:2]

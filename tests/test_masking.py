@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
+from scipy.ndimage import minimum_filter
 
-from surgtrack.masking import ColourModel, predict_mask, search_regions, silhouette_iou
+from surgtrack.geometry import make_T, project
+from surgtrack.masking import ColourModel, predict_mask, render_depth, search_regions, seen_past, silhouette_iou
 
 K = np.array([[200.0, 0, 80], [0, 200.0, 60], [0, 0, 1]])
 GREY, GREEN, SKIN, BLUE = (150, 150, 155), (40, 140, 60), (220, 170, 140), (30, 40, 200)
@@ -213,3 +215,40 @@ def test_predicted_mask_grows_along_a_shaft_the_model_has_not_seen_but_not_onto_
     rgb3, depth3, (bar, tray) = later_frame([(np.s_[50:70, 30:150], 0.3), (np.s_[70:120, :], 0.3)])
     spilled = predict_mask(points, np.eye(4), K, depth3, 4, 0.01, rgb3, colours, 0.25, grow_posterior=0.6)
     assert (spilled == predict_mask(points, np.eye(4), K, depth3, 4, 0.01, rgb3, colours, 0.25)).all()
+
+
+def test_seen_past_is_the_share_of_the_silhouette_the_camera_saw_through():
+    """0 where the frame's depth is the model's, 1 where it lies behind it everywhere, about a half where behind on
+    one half, and an occluder in front of the model is left out rather than counted as seen through."""
+    K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
+    g = np.linspace(-0.03, 0.03, 61)
+    plate = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    points = np.column_stack([plate, np.zeros(len(plate))])
+    pose = make_T(np.eye(3), np.array([0.0, 0.0, 0.4]))
+    model = render_depth(points, pose, K, (240, 320))
+    assert seen_past(points, pose, K, model, 0.01) == 0.0
+    assert seen_past(points, pose, K, np.where(model > 0, model + 0.05, 0.6), 0.01) == 1.0
+    half = np.where(model > 0, model, 0.6)
+    half[:, 160:] += 0.05
+    assert 0.4 < seen_past(points, pose, K, half, 0.01) < 0.6
+    hand = half.copy()
+    hand[:, 160:] = np.where(model[:, 160:] > 0, model[:, 160:] - 0.05, 0.6)  # a hand in front of that half
+    assert seen_past(points, pose, K, hand, 0.01) == 0.0
+
+
+def test_render_depth_is_the_nearest_point_within_the_splat_even_at_the_frame_border():
+    """Each pixel holds the nearest model depth within ``splat`` pixels (0 where none), also where the model runs
+    off the frame: the same as a z-buffer of the whole frame under a min filter."""
+    K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
+    rng = np.random.default_rng(3)
+    points = rng.normal(size=(3000, 3)) * [0.08, 0.01, 0.01]  # a shaft longer than the frame is wide
+    pose = make_T(np.eye(3), np.array([0.05, 0.0, 0.3]))
+    depth = render_depth(points, pose, K, (240, 320))
+    uv, z = project(points + pose[:3, 3], K)
+    u, v = np.round(uv).astype(int).T
+    inside = (u >= 0) & (u < 320) & (v >= 0) & (v < 240)
+    assert 0 < inside.sum() < len(points)
+    full = np.full((240, 320), np.inf, np.float32)
+    np.minimum.at(full, (v[inside], u[inside]), z[inside].astype(np.float32))
+    full = minimum_filter(full, size=5, mode="constant", cval=np.inf)
+    assert np.array_equal(depth, np.where(np.isfinite(full), full, 0))

@@ -212,6 +212,17 @@ def _near(labels: np.ndarray, area: np.ndarray, xyz: np.ndarray, centre: np.ndar
     return near
 
 
+def seen_past(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, depth: np.ndarray, tol: float) -> float:
+    """Share of the model's silhouette at ``pose`` (the splat's rim eroded away) where the frame's depth lies more
+    than ``tol`` behind the model: the camera saw through where the pose puts the instrument. Pixels with nothing
+    seen, or something more than ``tol`` in front of the model (an occluder), are left out."""
+    model = render_depth(points_obj, pose, K, depth.shape)
+    core = cv2.erode((model > 0).astype(np.uint8), np.ones((2 * SPLAT + 1,) * 2, np.uint8)).astype(bool)
+    core &= (depth > 0) & (depth > model - tol)
+    n = int(core.sum())
+    return float((depth[core] > model[core] + tol).sum()) / n if n else 0.0
+
+
 def silhouette_iou(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, mask: np.ndarray) -> float:
     """Intersection over union of the model's silhouette at ``pose`` (`render_depth`) and ``mask``: low when a
     pose fits the frame's points to one part of the model and the rest of it would show where nothing was seen."""

@@ -35,7 +35,7 @@ from .geometry import (
 )
 from .global_registration import global_register, icp_from
 from .io import Frame
-from .masking import ColourModel, predict_mask, render_depth, search_regions, silhouette_iou
+from .masking import ColourModel, predict_mask, render_depth, search_regions, seen_past, silhouette_iou
 from .memory_pool import Keyframe, MemoryPool
 from .model import InstrumentModel
 from .posture_graph import FeatureEdge, FreeSpace, GraphNode, GridPoints, optimize_graph
@@ -160,6 +160,7 @@ class SurgTracker:
         self.recent: deque[_Node] = deque(maxlen=max(self.cfg.graph.adjacent, 1))
         self.lost = False
         self.frames_lost = 0
+        self._seen_past_run = 0  # frames in a row that saw past the model (_sees_past)
         self.sdf: InstrumentSDF | None = None  # the converged field the posture graph uses (L_SDF, eq. 11)
         self.fitter: BackgroundFitter | None = None
         self._field: InstrumentSDF | None = None  # the field refitted in line when there is no background fitter
@@ -259,6 +260,8 @@ class SurgTracker:
         pose = node.pose
         confidence = self._confidence(node)
         if confidence < self.cfg.failure.min_confidence:
+            return self._lose(clock, confidence)
+        if mask is None and self._sees_past(frame, pose):
             return self._lose(clock, confidence)
         status = RELOCALISED if self.lost else TRACKED
         if mask is None and status == TRACKED:
@@ -701,6 +704,19 @@ class SurgTracker:
                             pre.predicted_mask_front_tol, inside_posterior=pre.predicted_mask_colour_inside,
                             grow_posterior=pre.predicted_mask_grow, grow_step=pre.predicted_mask_grow_step,
                             grow_ratio=pre.predicted_mask_grow_ratio)
+
+    def _sees_past(self, frame: Frame, pose: np.ndarray) -> bool:
+        """True when the frame has seen past more than ``failure.max_seen_past`` of the model's silhouette
+        (`masking.seen_past`) on ``failure.seen_past_frames`` frames in a row: the pose is on something else."""
+        f = self.cfg.failure
+        if f.max_seen_past >= 1.0 or self.model_points is None:
+            return False
+        s = seen_past(self.model_points, pose, frame.K, frame.depth, self.cfg.graph.free_space_tol)
+        self._seen_past_run = self._seen_past_run + 1 if s > f.max_seen_past else 0
+        if self._seen_past_run >= f.seen_past_frames:
+            self._seen_past_run = 0
+            return True
+        return False
 
     def _lose(self, clock: _Clock, confidence: float = 0.0) -> TrackResult:
         self.lost = True
