@@ -20,8 +20,9 @@ _REG = o3d.pipelines.registration
 
 @contextmanager
 def one_thread() -> Iterator[None]:
-    """Open3D on one thread within: over several, its RANSAC (and its ICP's sums) depend on which thread finishes
-    first, so the same call with the same seed gives another pose now and then, and tracking runs do not repeat."""
+    """Open3D on one thread within (or in a function it decorates): over several, its RANSAC (and its ICP's sums)
+    depend on which thread finishes first, so the same call with the same seed gives another pose now and then, and
+    tracking runs do not repeat."""
     before = o3d.utility.get_max_threads()
     o3d.utility.set_max_threads(1)
     try:
@@ -38,6 +39,7 @@ def point_cloud(points: np.ndarray, normals: np.ndarray | None = None, voxel: fl
     return pc.voxel_down_sample(voxel) if voxel > 0 else pc
 
 
+@one_thread()
 def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, max_dists: Sequence[float],
         target_normals: np.ndarray | None = None, iterations: int = 20) -> tuple[np.ndarray, float]:
     """Coarse-to-fine ICP (Open3D) of ``source`` points onto ``target`` points from ``init``, one pass per
@@ -54,8 +56,7 @@ def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, max_dists: Seq
     for d in max_dists:
         est = (_REG.TransformationEstimationPointToPoint() if target_normals is None
                else _REG.TransformationEstimationPointToPlane(_REG.TukeyLoss(k=d / 2)))
-        with one_thread():
-            res = _REG.registration_icp(src, tgt, d, T, est, _REG.ICPConvergenceCriteria(max_iteration=iterations))
+        res = _REG.registration_icp(src, tgt, d, T, est, _REG.ICPConvergenceCriteria(max_iteration=iterations))
         T, fitness = np.asarray(res.transformation), float(res.fitness)
     return orthonormalize(inv_T(c) @ T @ c), fitness
 
@@ -74,6 +75,7 @@ def overlap(model_tree: cKDTree, pose: np.ndarray, points_cam: np.ndarray, dist:
     return float(np.mean(np.isfinite(d)))
 
 
+@one_thread()
 def global_register(points_cam: np.ndarray, model_obj: np.ndarray, voxel: float = 0.004, seeds: Sequence[int] = (0,),
                     iterations: int = 50_000) -> list[tuple[np.ndarray, float]]:
     """Poses (object-to-camera) that lay the model on the frame's points, one per RANSAC seed, each with the fraction
@@ -82,9 +84,8 @@ def global_register(points_cam: np.ndarray, model_obj: np.ndarray, voxel: float 
     if len(points_cam) < 30 or len(model_obj) < 30:
         return []
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
-    with one_thread():
-        src, src_f = _cloud(model_obj, voxel)
-        dst, dst_f = _cloud(points_cam, voxel)
+    src, src_f = _cloud(model_obj, voxel)
+    dst, dst_f = _cloud(points_cam, voxel)
     if len(src.points) < 10 or len(dst.points) < 10:
         return []
     gate = 2.0 * voxel
@@ -92,13 +93,11 @@ def global_register(points_cam: np.ndarray, model_obj: np.ndarray, voxel: float 
     found = []
     for seed in seeds:
         o3d.utility.random.seed(seed)
-        with one_thread():
-            coarse = _REG.registration_ransac_based_on_feature_matching(
-                src, dst, src_f, dst_f, True, gate, _REG.TransformationEstimationPointToPoint(False), 3,
-                [_REG.CorrespondenceCheckerBasedOnEdgeLength(0.9), _REG.CorrespondenceCheckerBasedOnDistance(gate)],
-                _REG.RANSACConvergenceCriteria(iterations, 0.999))
-            fine = _REG.registration_icp(src, dst, gate, coarse.transformation,
-                                         _REG.TransformationEstimationPointToPlane())
+        coarse = _REG.registration_ransac_based_on_feature_matching(
+            src, dst, src_f, dst_f, True, gate, _REG.TransformationEstimationPointToPoint(False), 3,
+            [_REG.CorrespondenceCheckerBasedOnEdgeLength(0.9), _REG.CorrespondenceCheckerBasedOnDistance(gate)],
+            _REG.RANSACConvergenceCriteria(iterations, 0.999))
+        fine = _REG.registration_icp(src, dst, gate, coarse.transformation, _REG.TransformationEstimationPointToPlane())
         # Point-to-plane ICP can slide off a round shaft it cannot pin: keep whichever pose explains more.
         scored = [(overlap(tree, T, dst_pts, gate), T) for T in (np.array(fine.transformation),
                                                                  np.array(coarse.transformation))]

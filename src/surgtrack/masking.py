@@ -40,6 +40,11 @@ def render_depth(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, shape:
     return depth
 
 
+def silhouette_core(model: np.ndarray) -> np.ndarray:
+    """The model's silhouette in a `render_depth` image without the splat's own rim (eroded away)."""
+    return cv2.erode((model > 0).astype(np.uint8), np.ones((2 * SPLAT + 1,) * 2, np.uint8)).astype(bool)
+
+
 def predict_mask(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, depth: np.ndarray,
                  margin: int, tol: float, rgb: np.ndarray | None = None, colour: ColourModel | None = None,
                  min_posterior: float = 0.0, front_tol: float | None = None, keep: float = 0.8,
@@ -68,8 +73,7 @@ def predict_mask(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, depth:
         if tight.sum() >= keep * mask.sum():
             mask = tight
     if colour is not None and rgb is not None:
-        # the splat's own rim is not the model's silhouette: erode it away
-        core = cv2.erode((model > 0).astype(np.uint8), np.ones((2 * SPLAT + 1,) * 2, np.uint8)).astype(bool)
+        core = silhouette_core(model)
         looked = mask & ~core if inside_posterior <= 0 else mask.copy()
         least = np.where(core[looked], inside_posterior, min_posterior)
         posterior = colour.posterior(rgb) if grow_posterior > 0 else None  # the whole frame, once, to grow into
@@ -213,12 +217,11 @@ def _near(labels: np.ndarray, area: np.ndarray, xyz: np.ndarray, centre: np.ndar
 
 
 def seen_past(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, depth: np.ndarray, tol: float) -> float:
-    """Share of the model's silhouette at ``pose`` (the splat's rim eroded away) where the frame's depth lies more
+    """Share of the model's silhouette at ``pose`` (`silhouette_core`) where the frame's depth lies more
     than ``tol`` behind the model: the camera saw through where the pose puts the instrument. Pixels with nothing
     seen, or something more than ``tol`` in front of the model (an occluder), are left out."""
     model = render_depth(points_obj, pose, K, depth.shape)
-    core = cv2.erode((model > 0).astype(np.uint8), np.ones((2 * SPLAT + 1,) * 2, np.uint8)).astype(bool)
-    core &= (depth > 0) & (depth > model - tol)
+    core = silhouette_core(model) & (depth > 0) & (depth > model - tol)
     n = int(core.sum())
     return float((depth[core] > model[core] + tol).sum()) / n if n else 0.0
 

@@ -713,14 +713,12 @@ class SurgTracker:
             return False
         s = seen_past(self.model_points, pose, frame.K, frame.depth, self.cfg.graph.free_space_tol)
         self._seen_past_run = self._seen_past_run + 1 if s > f.max_seen_past else 0
-        if self._seen_past_run >= f.seen_past_frames:
-            self._seen_past_run = 0
-            return True
-        return False
+        return self._seen_past_run >= f.seen_past_frames
 
     def _lose(self, clock: _Clock, confidence: float = 0.0) -> TrackResult:
         self.lost = True
         self.frames_lost += 1
+        self._seen_past_run = 0  # a lost frame ends the row
         clock.lap("pool")
         return TrackResult(None, LOST, confidence, clock.laps)
 
