@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 from helpers import assert_one_line_error, surgtrack
 
-from surgtrack.bench import _mean, format_table, method_config
+from surgtrack.bench import _mean, format_table, method_config, suite_digest
 from surgtrack.config import TrackerConfig
 from surgtrack.synth import SynthSpec, shorten
 
@@ -55,6 +55,10 @@ def test_table_has_a_row_per_method_and_sequence():
     assert "| surgtrack | 95.00 | 90.00 | - | - | - | 12.0 | 500 | graph 20.0 |" in table  # a bench.json of before
     assert "| s2 | 95.00 / 90.00 | 95.00 / 90.00 |" in table
     assert "![a.png](a.png)" in table
+    assert "SHA-256" not in table  # a bench.json of before: no data digests
+    with_data = format_table({**results, "data_sha256": {"s2": "b" * 64, "s1": "a" * 64}})
+    assert f"Data: SHA-256 {suite_digest({'s1': 'a' * 64, 's2': 'b' * 64})[:16]} " in with_data
+    assert suite_digest({"s1": "a" * 64, "s2": "b" * 64}) != suite_digest({"s1": "a" * 64, "s2": "c" * 64})
 
 
 def test_table_reports_lost_frames_apart_from_frames_given_a_wrong_pose():

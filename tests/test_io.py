@@ -23,6 +23,7 @@ from surgtrack.io import (
     SequenceWriter,
     open_sequence,
     read_poses,
+    sequence_digest,
     write_pose,
 )
 
@@ -74,6 +75,22 @@ def test_sequence_round_trip(tmp_path: Path):
     assert list(gt) == seq.ids
     np.testing.assert_allclose(gt["000003"], pose(3), atol=1e-8)
     assert seq.gt_model() is None and seq.gt_visible_points() is None
+
+
+def test_the_digest_names_the_frames_not_the_folder(tmp_path: Path):
+    """Two folders with the same files have the same digest wherever they lie; one changed depth value, or a
+    frame renamed, gives another."""
+    a = make_sequence(tmp_path / "a", masks="all")
+    b = make_sequence(tmp_path / "elsewhere" / "b", masks="all")
+    assert sequence_digest(a) == sequence_digest(b)
+    depth = a / "depth" / "000002.png"
+    d = cv2.imread(str(depth), cv2.IMREAD_UNCHANGED)
+    d[0, 0] += 1
+    cv2.imwrite(str(depth), d)
+    assert sequence_digest(a) != sequence_digest(b)
+    mask = b / "masks" / "000003.png"
+    mask.rename(b / "masks" / "000004.png")
+    assert sequence_digest(b) != sequence_digest(make_sequence(tmp_path / "c", masks="all"))
 
 
 def test_optional_masks_and_gt_model(tmp_path: Path):

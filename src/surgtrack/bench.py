@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import hashlib
 import json
 import multiprocessing
 import resource
@@ -16,7 +17,7 @@ import numpy as np
 
 from .baselines import BaselineTracker, FrameToFrameICPTracker, KinectFusionTracker, RansacOnlyTracker
 from .config import TrackerConfig
-from .io import open_sequence
+from .io import open_sequence, sequence_digest
 from .metrics import evaluate
 from .pipeline import track_sequence
 from .plots import plot_accuracy, plot_errors_over_time
@@ -73,6 +74,7 @@ def run_bench(suite: str, methods: list[str], root: Path | str, short: bool = Fa
         if not is_rendered(spec, path):
             log(f"rendering {name} ({spec.frames} frames, {spec.width}x{spec.height})")
             render_sequence(spec, path)
+    results["data_sha256"] = {name: sequence_digest(root / "data" / name) for name, _ in specs}
     errors: dict[str, dict[str, list]] = {}
     first_seq: dict[str, dict] = {}
     names = [name for name, _ in specs]
@@ -135,6 +137,11 @@ def _mean(per_seq: dict) -> dict:
             "fps": frames / seconds if seconds else 0.0, "stage_ms": stages}
 
 
+def suite_digest(digests: dict[str, str]) -> str:
+    """One SHA-256 over the sequences' digests (`io.sequence_digest`), in name order: the suite's data at a glance."""
+    return hashlib.sha256("".join(f"{k}:{v}\n" for k, v in sorted(digests.items())).encode()).hexdigest()
+
+
 def _fmt(x: float | None) -> str:
     return "-" if x is None else f"{x:.2f}"
 
@@ -158,5 +165,8 @@ def format_table(results: dict) -> str:
         cells = [f"{_fmt(r['sequences'][name]['add_s_auc'])} / {_fmt(r['sequences'][name]['add_auc'])}"
                  for r in results["methods"].values()]
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    if results.get("data_sha256"):
+        lines += ["", f"Data: SHA-256 {suite_digest(results['data_sha256'])[:16]} over the sequences' digests "
+                      "(bench.json `data_sha256`); figures compare only on the same data."]
     lines += ["", *[f"![{p}]({p})" for p in results.get("plots", [])]]
     return "\n".join(lines) + "\n"

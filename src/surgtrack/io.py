@@ -9,6 +9,7 @@ names the file and what is wrong.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import re
@@ -377,6 +378,17 @@ def _apc_blocks(text: str) -> dict[str, np.ndarray]:
             except ValueError:
                 continue
     return {k: np.array(v) for k, v in blocks.items() if v}
+
+
+def sequence_digest(root: Path | str) -> str:
+    """SHA-256 of a sequence folder: every file's path (relative, sorted) and bytes. Two folders with the same
+    digest hold the same frames, whichever machine rendered or recorded them; benchmark figures compare only then."""
+    root = Path(root)
+    h = hashlib.sha256()
+    for path in sorted((p for p in root.rglob("*") if p.is_file()), key=lambda p: p.relative_to(root).as_posix()):
+        h.update(path.relative_to(root).as_posix().encode() + b"\0")
+        h.update(path.read_bytes())
+    return h.hexdigest()
 
 
 def _load_json(path: Path) -> dict:
