@@ -5,14 +5,16 @@ from __future__ import annotations
 
 import json
 from dataclasses import replace
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 import surgtrack.tracker
 from surgtrack.config import TrackerConfig
-from surgtrack.geometry import inv_T, make_T, project, rotation_angle_deg
+from surgtrack.geometry import inv_T, make_T, project, rotation_angle_deg, transform
 from surgtrack.io import open_sequence
 from surgtrack.metrics import auc, evaluate
 from surgtrack.pipeline import track_sequence
@@ -289,3 +291,36 @@ def test_without_masks_a_pose_the_camera_sees_through_is_reported_lost(synth_seq
 
     assert LOST not in statuses(1.0)
     assert LOST in statuses(TrackerConfig().failure.max_seen_past)[:2]
+
+
+def test_without_masks_what_the_camera_sees_past_leaves_the_model(synth_seq):
+    """A predicted mask can take in what is not the instrument (fingers at its depth), and its keyframe adds it to
+    the model. Here a copy of the first frame's points 2 cm beside the instrument joins the model as such a keyframe
+    would add it. Tracked frames without a mask see past it to the background; with ``pool.carve_ratio`` set it
+    leaves the model once ``pool.carve_min_views`` frames have seen it (here three quarters of it in nine frames),
+    while the first frame's points (its mask was given) all stay. Without carving the copy stays."""
+    seq = open_sequence(synth_seq)
+
+    def model_after(carve_ratio: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        cfg = TrackerConfig()
+        cfg.sdf.enabled = False
+        cfg.pool.carve_ratio = carve_ratio
+        tracker = SurgTracker(cfg)
+        pose = tracker.register(seq[0], seq[0].mask)
+        first = tracker.model_points.copy()
+        v, u = np.nonzero(seq[0].mask)
+        shaft = np.linalg.eigh(np.cov(np.stack([u, v])))[1][:, -1]
+        across = pose[:3, :3].T @ np.array([-shaft[1], shaft[0], 0.0])  # in the image plane, object frame
+        ghost = first + 0.02 * across
+        tracker._remember_points(SimpleNamespace(pose=pose, xyz=transform(pose, ghost)[:, None]), given=False)
+        assert all(tracker.track(seq[i], None).status != LOST for i in range(1, 10))
+        return first, ghost, tracker.model_points
+
+    def share_kept(points: np.ndarray, model: np.ndarray) -> float:
+        return float(np.mean(cKDTree(model).query(points)[0] < 1e-6))
+
+    first, ghost, model = model_after(0.5)
+    assert share_kept(first, model) == 1.0
+    assert share_kept(ghost, model) < 0.4  # what stays, the frames did not see (out of view, behind the hand)
+    _, ghost, model = model_after(0.0)
+    assert share_kept(ghost, model) > 0.9

@@ -64,6 +64,8 @@ class PoolConfig:
     K: int = 9  # memory frames selected as graph nodes
     overlap_normal_deg: float = 70.0  # view overlap: normals facing the camera within this angle
     min_predicted_area: float = 0.25  # a predicted mask joins the pool only with this fraction of its largest mask
+    carve_ratio: float = 0.0  # a model point seen past on more than this share of the frames that saw it leaves
+    carve_min_views: int = 5  # ... once that many frames saw it (0 ratio: never; only frames without a given mask)
 
 
 @dataclass

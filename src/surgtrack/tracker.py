@@ -167,6 +167,8 @@ class SurgTracker:
         self._keyframes_added = 0  # by this tracker; sets the refit cadence (sdf.refit_every)
         self.model_points: np.ndarray | None = None  # the keyframes' points in the object frame
         self._model_tree: cKDTree | None = None
+        # per model point: frames that saw past it, frames that saw it or past it, whether a given mask made it
+        self._past, self._views, self._given = np.zeros(0, int), np.zeros(0, int), np.zeros(0, bool)
         self.colour = ColourModel(self.cfg.preprocess.colour_bins, self.cfg.preprocess.colour_ring)
         self.model = model
         if model is not None:
@@ -266,6 +268,7 @@ class SurgTracker:
         status = RELOCALISED if self.lost else TRACKED
         if mask is None and status == TRACKED:
             self._learn_occluders(frame, pose)
+            self._carve(frame, pose)
         self.lost = False
         self.frames_lost = 0
         self.recent.append(node)
@@ -632,7 +635,7 @@ class SurgTracker:
                       obs.frame.depth, obs.mask, obs.K, image=intensity(obs.frame.rgb))
         kf.grid_points = node.grid_points  # the same grid: its points were found once, for the frame
         self.pool.add(kf)
-        self._remember_points(kf)
+        self._remember_points(kf, obs.mask_given)
         self._keyframes_added += 1
         if (self._keyframes_added - 1) % self.cfg.sdf.refit_every:  # counted, not len(pool): a full pool stays full
             return
@@ -643,12 +646,41 @@ class SurgTracker:
         elif self._field is not None:
             self._field.refit(views, self.cfg.sdf.refit_iterations)
 
-    def _remember_points(self, kf: Keyframe) -> None:
+    def _remember_points(self, kf: Keyframe, given: bool = True) -> None:
         pts = transform(inv_T(kf.pose), kf.xyz[kf.xyz[..., 2] > 0])
         if self.model_points is not None:
             pts = np.concatenate([self.model_points, pts])
-        self.model_points = voxel_downsample(pts, 0.002)
+        self.model_points = voxel_downsample(pts, 0.002)  # the points kept come first, in their order
         self._model_tree = cKDTree(self.model_points)
+        new = len(self.model_points) - len(self._past)
+        self._past = np.concatenate([self._past, np.zeros(new, int)])
+        self._views = np.concatenate([self._views, np.zeros(new, int)])
+        self._given = np.concatenate([self._given, np.full(new, given)])
+
+    def _carve(self, frame: Frame, pose: np.ndarray) -> None:
+        """Free-space carving of the model, as TSDF fusion clears what has moved away: a point that a tracked frame
+        sees more than ``graph.free_space_tol`` past, on more than ``pool.carve_ratio`` of the frames that saw it
+        or past it (at least ``pool.carve_min_views``), was not the instrument (a hand that a predicted mask took
+        in) and leaves the model. Points from given masks stay; a point hidden behind something counts for nothing."""
+        c = self.cfg.pool
+        if c.carve_ratio <= 0 or self.model_points is None:
+            return
+        uv, z = project(transform(pose, self.model_points), frame.K)
+        u, v = np.round(uv[:, 0]).astype(int), np.round(uv[:, 1]).astype(int)
+        h, w = frame.depth.shape
+        inside = (z > 1e-3) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        d = np.zeros(len(z), np.float32)
+        d[inside] = frame.depth[v[inside], u[inside]]
+        tol = self.cfg.graph.free_space_tol
+        past = (d > 0) & (d > z + tol)
+        self._past += past
+        self._views += past | ((d > 0) & (np.abs(d - z) <= tol))
+        drop = ~self._given & (self._views >= c.carve_min_views) & (self._past > c.carve_ratio * self._views)
+        if drop.any():
+            keep = ~drop
+            self.model_points = self.model_points[keep]
+            self._past, self._views, self._given = self._past[keep], self._views[keep], self._given[keep]
+            self._model_tree = cKDTree(self.model_points)
 
     def views(self, n: int | None = None) -> list[View]:
         """The keyframes as SDF views at their tracked poses (the bound of a joint refinement holds against these);
