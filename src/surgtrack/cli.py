@@ -41,7 +41,8 @@ def synth(
     frames: Annotated[int | None, typer.Option(
         help="number of frames (default 300; with --suite, each sequence cut to this many, as bench --frames)")] = None,
     size: Annotated[str, typer.Option(help="WIDTHxHEIGHT")] = "640x480",
-    seed: Annotated[int, typer.Option(help="random seed (same seed, same files)")] = 0,
+    seed: Annotated[int, typer.Option(
+        help="random seed (same seed, same files on one machine; bench prints the data's digest)")] = 0,
     occluders: Annotated[int, typer.Option(help="moving hands in front of the instrument (0-3)")] = 1,
     full_occlusion: Annotated[list[str] | None, typer.Option(help="START:LENGTH frames fully covered (repeatable)")]
     = None,
