@@ -666,13 +666,10 @@ class SurgTracker:
         if c.carve_ratio <= 0 or self.model_points is None:
             return
         uv, z = project(transform(pose, self.model_points), frame.K)
-        u, v = np.round(uv[:, 0]).astype(int), np.round(uv[:, 1]).astype(int)
-        h, w = frame.depth.shape
-        inside = (z > 1e-3) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        d = np.zeros(len(z), np.float32)
-        d[inside] = frame.depth[v[inside], u[inside]]
+        d, inside = sample(frame.depth, uv)
+        d = np.where(inside & (z > 1e-3), d, 0)
         tol = self.cfg.graph.free_space_tol
-        past = (d > 0) & (d > z + tol)
+        past = d > z + tol  # d is 0 where nothing was seen
         self._past += past
         self._views += past | ((d > 0) & (np.abs(d - z) <= tol))
         drop = ~self._given & (self._views >= c.carve_min_views) & (self._past > c.carve_ratio * self._views)
