@@ -16,6 +16,7 @@ import surgtrack.tracker
 from surgtrack.config import TrackerConfig
 from surgtrack.geometry import inv_T, make_T, project, rotation_angle_deg, transform
 from surgtrack.io import open_sequence
+from surgtrack.masking import render_depth
 from surgtrack.metrics import auc, evaluate
 from surgtrack.pipeline import track_sequence
 from surgtrack.synth import SynthSpec, render_sequence
@@ -324,3 +325,40 @@ def test_without_masks_what_the_camera_sees_past_leaves_the_model(synth_seq):
     assert share_kept(ghost, model) < 0.4  # what stays, the frames did not see (out of view, behind the hand)
     _, ghost, model = model_after(0.0)
     assert share_kept(ghost, model) > 0.9
+
+
+def test_without_masks_the_predicted_mask_stays_within_the_first_masks_reach_across_the_shaft(synth_seq):
+    """Something at the instrument's depth beside its shaft (fingers that hold it) gets into a predicted mask where
+    the model has grown into it. Here the model holds a copy of the first frame's points 4 cm beside the shaft,
+    and the frame shows a surface there at the copy's depth, of a colour the colour gates let through (turned off
+    here). With ``preprocess.predicted_mask_across`` the mask
+    keeps to the first mask's reach across the shaft plus that margin: the surface stays out and the instrument's
+    own pixels stay in; without it the mask takes the surface in."""
+    seq = open_sequence(synth_seq)
+    frame = seq[1]
+
+    def predicted(across: float) -> tuple[np.ndarray, np.ndarray]:
+        cfg = TrackerConfig()
+        cfg.sdf.enabled = False
+        cfg.preprocess.predicted_mask_across = across
+        cfg.preprocess.predicted_mask_colour = cfg.preprocess.predicted_mask_colour_inside = 0.0  # colour alike
+        tracker = SurgTracker(cfg)
+        pose = tracker.register(seq[0], seq[0].mask)
+        v, u = np.nonzero(seq[0].mask)
+        shaft = np.linalg.eigh(np.cov(np.stack([u, v])))[1][:, -1]
+        beside = pose[:3, :3].T @ np.array([-shaft[1], shaft[0], 0.0])  # in the image plane, object frame
+        ghost = tracker.model_points + 0.04 * beside
+        tracker._remember_points(SimpleNamespace(pose=pose, xyz=transform(pose, ghost)[:, None]), given=False)
+        surface = render_depth(ghost, pose, frame.K, frame.depth.shape)
+        depth = np.where((surface > 0) & ~frame.mask, surface, frame.depth)
+        shown = replace(frame, depth=depth)
+        return tracker._predicted_mask(shown, pose), (surface > 0) & ~frame.mask & (depth > 0)
+
+    def inside(mask: np.ndarray, where: np.ndarray) -> float:
+        return float(np.mean(mask[where]))
+
+    bounded, surface = predicted(0.01)
+    assert inside(bounded, surface) < 0.05
+    assert inside(bounded, seq[1].mask & (seq[1].depth > 0)) > 0.85
+    unbounded, _ = predicted(0.0)
+    assert inside(unbounded, surface) > 0.5

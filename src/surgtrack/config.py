@@ -26,6 +26,8 @@ class PreprocessConfig:
     # without a depth jump: parts of the instrument the model has not seen yet (0: off)
     predicted_mask_grow_step: float = 0.01  # m: depth jump between neighbours that stops the growth
     predicted_mask_grow_ratio: float = 2.0  # growth beyond this times the mask's area is not taken
+    predicted_mask_across: float = 0.0  # m beyond the first mask's reach across the instrument's long axis that a
+    # predicted mask may extend (a hand beside the shaft stays out; 0: off)
     predicted_mask_remask: bool = True  # mask a frame again at its tracked pose and optimise the graph once more
     search_mask_colour: float = 0.6  # lost without a given mask: pixels whose colour is instrument with this posterior
     normal_step: int = 1  # normals from neighbours this many pixels away (larger: smoother, fewer thin-part pixels)

@@ -109,6 +109,21 @@ def object_origin(points: np.ndarray) -> np.ndarray:
     return points[keep].mean(axis=0)
 
 
+def long_axis(points: np.ndarray, share: float = 98.0) -> tuple[np.ndarray, np.ndarray, float]:
+    """A line along an instrument and its reach across it: the points' centre, their first principal axis, and the
+    ``share`` percentile of their distances from that line (m). From the first frame's masked points, the reach
+    bounds how far from its shaft a mask predicted later may extend."""
+    centre = points.mean(axis=0)
+    direction = np.linalg.eigh(np.cov((points - centre).T))[1][:, -1]
+    return centre, direction, float(np.percentile(off_line(points, centre, direction), share))
+
+
+def off_line(points: np.ndarray, centre: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    """Distances (m) of ``points`` from the line through ``centre`` along the unit vector ``direction``."""
+    q = points - centre
+    return np.linalg.norm(q - np.outer(q @ direction, direction), axis=1)
+
+
 def field_box(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Centre (the points' mean), orientation R (rows: their principal axes) and size (m, per axis) of the SDF's
     box around the first frame's preprocessed instrument points (flying pixels already dropped): 1.5 times what
@@ -169,6 +184,7 @@ class SurgTracker:
         self._model_tree: cKDTree | None = None
         # per model point: frames that saw past it, frames that saw it or past it, whether a given mask made it
         self._past, self._views, self._given = np.zeros(0, int), np.zeros(0, int), np.zeros(0, bool)
+        self._axis: tuple[np.ndarray, np.ndarray, float] | None = None  # long_axis of the first keyframe's points
         self.colour = ColourModel(self.cfg.preprocess.colour_bins, self.cfg.preprocess.colour_ring)
         self.model = model
         if model is not None:
@@ -648,6 +664,8 @@ class SurgTracker:
 
     def _remember_points(self, kf: Keyframe, given: bool = True) -> None:
         pts = transform(inv_T(kf.pose), kf.xyz[kf.xyz[..., 2] > 0])
+        if self._axis is None:
+            self._axis = long_axis(pts)
         if self.model_points is not None:
             pts = np.concatenate([self.model_points, pts])
         self.model_points = voxel_downsample(pts, 0.002)  # the points kept come first, in their order
@@ -728,11 +746,17 @@ class SurgTracker:
         if self.model_points is None:
             return np.zeros(frame.depth.shape, bool)
         pre = self.cfg.preprocess
-        return predict_mask(self.model_points, pose, frame.K, frame.depth, pre.predicted_mask_margin,
+        mask = predict_mask(self.model_points, pose, frame.K, frame.depth, pre.predicted_mask_margin,
                             pre.predicted_mask_tol, frame.rgb, self._colour(), pre.predicted_mask_colour,
                             pre.predicted_mask_front_tol, inside_posterior=pre.predicted_mask_colour_inside,
                             grow_posterior=pre.predicted_mask_grow, grow_step=pre.predicted_mask_grow_step,
                             grow_ratio=pre.predicted_mask_grow_ratio)
+        if pre.predicted_mask_across > 0 and self._axis is not None:
+            pts, vu = backproject(frame.depth, frame.K, mask)
+            centre, direction, reach = self._axis
+            far = vu[off_line(transform(inv_T(pose), pts), centre, direction) > reach + pre.predicted_mask_across]
+            mask[far[:, 0], far[:, 1]] = False
+        return mask
 
     def _sees_past(self, frame: Frame, pose: np.ndarray) -> bool:
         """True when the frame has seen past more than ``failure.max_seen_past`` of the model's silhouette
