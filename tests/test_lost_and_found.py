@@ -294,6 +294,17 @@ def test_without_masks_a_pose_the_camera_sees_through_is_reported_lost(synth_seq
     assert LOST in statuses(TrackerConfig().failure.max_seen_past)[:2]
 
 
+def _ghost_beside(tracker: SurgTracker, pose: np.ndarray, mask: np.ndarray, offset: float) -> np.ndarray:
+    """The tracker's model points moved ``offset`` m across the shaft (in the image plane), added to its model as a
+    predicted-mask keyframe would add fingers beside the instrument; returns them in the object frame."""
+    v, u = np.nonzero(mask)
+    shaft = np.linalg.eigh(np.cov(np.stack([u, v])))[1][:, -1]
+    across = pose[:3, :3].T @ np.array([-shaft[1], shaft[0], 0.0])  # in the image plane, object frame
+    ghost = tracker.model_points + offset * across
+    tracker._remember_points(SimpleNamespace(pose=pose, xyz=transform(pose, ghost)[:, None]), given=False)
+    return ghost
+
+
 def test_without_masks_what_the_camera_sees_past_leaves_the_model(synth_seq):
     """A predicted mask can take in what is not the instrument (fingers at its depth), and its keyframe adds it to
     the model. Here a copy of the first frame's points 2 cm beside the instrument joins the model as such a keyframe
@@ -309,11 +320,7 @@ def test_without_masks_what_the_camera_sees_past_leaves_the_model(synth_seq):
         tracker = SurgTracker(cfg)
         pose = tracker.register(seq[0], seq[0].mask)
         first = tracker.model_points.copy()
-        v, u = np.nonzero(seq[0].mask)
-        shaft = np.linalg.eigh(np.cov(np.stack([u, v])))[1][:, -1]
-        across = pose[:3, :3].T @ np.array([-shaft[1], shaft[0], 0.0])  # in the image plane, object frame
-        ghost = first + 0.02 * across
-        tracker._remember_points(SimpleNamespace(pose=pose, xyz=transform(pose, ghost)[:, None]), given=False)
+        ghost = _ghost_beside(tracker, pose, seq[0].mask, 0.02)
         assert all(tracker.track(seq[i], None).status != LOST for i in range(1, 10))
         return first, ghost, tracker.model_points
 
@@ -331,9 +338,9 @@ def test_without_masks_the_predicted_mask_stays_within_the_first_masks_reach_acr
     """Something at the instrument's depth beside its shaft (fingers that hold it) gets into a predicted mask where
     the model has grown into it. Here the model holds a copy of the first frame's points 4 cm beside the shaft,
     and the frame shows a surface there at the copy's depth, of a colour the colour gates let through (turned off
-    here). With ``preprocess.predicted_mask_across`` the mask
-    keeps to the first mask's reach across the shaft plus that margin: the surface stays out and the instrument's
-    own pixels stay in; without it the mask takes the surface in."""
+    here). With ``preprocess.predicted_mask_across`` the mask keeps to the first mask's reach across the shaft plus
+    that margin: the surface stays out and the instrument's own pixels stay in; without it the mask takes the
+    surface in."""
     seq = open_sequence(synth_seq)
     frame = seq[1]
 
@@ -344,11 +351,7 @@ def test_without_masks_the_predicted_mask_stays_within_the_first_masks_reach_acr
         cfg.preprocess.predicted_mask_colour = cfg.preprocess.predicted_mask_colour_inside = 0.0  # colour alike
         tracker = SurgTracker(cfg)
         pose = tracker.register(seq[0], seq[0].mask)
-        v, u = np.nonzero(seq[0].mask)
-        shaft = np.linalg.eigh(np.cov(np.stack([u, v])))[1][:, -1]
-        beside = pose[:3, :3].T @ np.array([-shaft[1], shaft[0], 0.0])  # in the image plane, object frame
-        ghost = tracker.model_points + 0.04 * beside
-        tracker._remember_points(SimpleNamespace(pose=pose, xyz=transform(pose, ghost)[:, None]), given=False)
+        ghost = _ghost_beside(tracker, pose, seq[0].mask, 0.04)
         surface = render_depth(ghost, pose, frame.K, frame.depth.shape)
         depth = np.where((surface > 0) & ~frame.mask, surface, frame.depth)
         shown = replace(frame, depth=depth)

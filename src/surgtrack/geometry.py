@@ -101,6 +101,12 @@ def kabsch(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = None) -> np.
     return make_T(R, cd - R @ cs)
 
 
+def off_line(points: np.ndarray, centre: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    """Distances of ``points`` from the line through ``centre`` along the unit vector ``direction``."""
+    q = points - centre
+    return np.linalg.norm(q - np.outer(q @ direction, direction), axis=1)
+
+
 def backproject(depth: np.ndarray, K: np.ndarray, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Camera-frame points of valid depth pixels (inside mask): returns (N, 3) points and (N, 2) pixel (v, u)."""
     valid = depth > 0

@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
-from .geometry import depth_to_xyz, project, transform
+from .geometry import backproject, depth_to_xyz, inv_T, off_line, project, transform
 
 SPLAT = 2  # pixels each model point covers around its projection (render_depth)
 
@@ -94,6 +94,19 @@ def grow_mask(mask: np.ndarray, depth: np.ndarray, candidates: np.ndarray, step:
     if added.sum() > ratio * mask.sum():
         return mask
     return mask | added
+
+
+def within_reach(mask: np.ndarray, depth: np.ndarray, K: np.ndarray, pose: np.ndarray,
+                 axis: tuple[np.ndarray, np.ndarray, float], margin: float) -> np.ndarray:
+    """``mask`` without the pixels whose points, in the object frame at ``pose``, lie further than the reach plus
+    ``margin`` (m) from the instrument's long ``axis`` (centre, unit direction, reach; `tracker.long_axis`): a hand
+    holding the shaft at its depth."""
+    pts, vu = backproject(depth, K, mask)
+    centre, direction, reach = axis
+    far = vu[off_line(transform(inv_T(pose), pts), centre, direction) > reach + margin]
+    out = mask.copy()
+    out[far[:, 0], far[:, 1]] = False
+    return out
 
 
 RING_INNER = 6  # px: the colour model's surroundings start this far from the first mask (its edge blurs both)

@@ -27,6 +27,7 @@ from .geometry import (
     backproject,
     inv_T,
     make_T,
+    off_line,
     orthonormalize,
     project,
     rotation_angle_deg,
@@ -35,7 +36,15 @@ from .geometry import (
 )
 from .global_registration import global_register, icp_from
 from .io import Frame
-from .masking import ColourModel, predict_mask, render_depth, search_regions, seen_past, silhouette_iou
+from .masking import (
+    ColourModel,
+    predict_mask,
+    render_depth,
+    search_regions,
+    seen_past,
+    silhouette_iou,
+    within_reach,
+)
 from .memory_pool import Keyframe, MemoryPool
 from .model import InstrumentModel
 from .posture_graph import FeatureEdge, FreeSpace, GraphNode, GridPoints, optimize_graph
@@ -109,21 +118,6 @@ def object_origin(points: np.ndarray) -> np.ndarray:
     return points[keep].mean(axis=0)
 
 
-def long_axis(points: np.ndarray, share: float = 98.0) -> tuple[np.ndarray, np.ndarray, float]:
-    """A line along an instrument and its reach across it: the points' centre, their first principal axis, and the
-    ``share`` percentile of their distances from that line (m). From the first frame's masked points, the reach
-    bounds how far from its shaft a mask predicted later may extend."""
-    centre = points.mean(axis=0)
-    direction = np.linalg.eigh(np.cov((points - centre).T))[1][:, -1]
-    return centre, direction, float(np.percentile(off_line(points, centre, direction), share))
-
-
-def off_line(points: np.ndarray, centre: np.ndarray, direction: np.ndarray) -> np.ndarray:
-    """Distances (m) of ``points`` from the line through ``centre`` along the unit vector ``direction``."""
-    q = points - centre
-    return np.linalg.norm(q - np.outer(q @ direction, direction), axis=1)
-
-
 def field_box(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Centre (the points' mean), orientation R (rows: their principal axes) and size (m, per axis) of the SDF's
     box around the first frame's preprocessed instrument points (flying pixels already dropped): 1.5 times what
@@ -155,6 +149,14 @@ def shaft_range(psi: InstrumentSDF, points: np.ndarray, trim: float = 3.0, pad: 
         excess = max(hi - lo - longest, 0.0)
         lo, hi = lo + excess / 2, hi - excess / 2
     return lo, hi
+
+
+def long_axis(points: np.ndarray, share: float = 98.0) -> tuple[np.ndarray, np.ndarray, float]:
+    """A line along an instrument and its reach across it: `field_box`'s centre and first principal axis of the
+    points, and the ``share`` percentile of their distances from that line (m). From the first frame's masked points,
+    the reach bounds how far from its shaft a mask predicted later may extend (`masking.within_reach`)."""
+    centre, R, _ = field_box(points)
+    return centre, R[0], float(np.percentile(off_line(points, centre, R[0]), share))
 
 
 def new_field(cfg: SDFConfig, obs: Observation, origin: np.ndarray) -> InstrumentSDF:
@@ -752,10 +754,7 @@ class SurgTracker:
                             grow_posterior=pre.predicted_mask_grow, grow_step=pre.predicted_mask_grow_step,
                             grow_ratio=pre.predicted_mask_grow_ratio)
         if pre.predicted_mask_across > 0 and self._axis is not None:
-            pts, vu = backproject(frame.depth, frame.K, mask)
-            centre, direction, reach = self._axis
-            far = vu[off_line(transform(inv_T(pose), pts), centre, direction) > reach + pre.predicted_mask_across]
-            mask[far[:, 0], far[:, 1]] = False
+            mask = within_reach(mask, frame.depth, frame.K, pose, self._axis, pre.predicted_mask_across)
         return mask
 
     def _sees_past(self, frame: Frame, pose: np.ndarray) -> bool:
