@@ -142,6 +142,33 @@ def test_a_field_that_disagrees_with_the_frame_stays_out_of_the_graph(synth_seq)
     assert tracker._field_agrees(node)  # off: a converged field always joins
 
 
+def test_each_frame_says_whether_the_field_was_in_its_graph(synth_seq, tmp_path):
+    """track.jsonl and summary.json tell which poses had L_SDF (eq. 11) in their graph: none before there is a field,
+    the frames after one fitting the instrument joins, and none while the field disagrees with the frames."""
+    from scipy.spatial import cKDTree
+
+    seq = open_sequence(synth_seq)
+    cfg = TrackerConfig()
+    cfg.sdf.enabled = False
+    tracker = SurgTracker(cfg)
+
+    def field_at(frame, result) -> None:
+        if frame.index == 9:  # |Psi| = distance to the model's points: a field that fits the instrument
+            tree = cKDTree(tracker.model_points)
+            tracker.sdf = lambda p: (tree.query(p)[0], np.zeros_like(p))
+        if frame.index == 19:  # the same 2 cm off
+            tree = cKDTree(tracker.model_points + [0.02, 0.0, 0.0])
+            tracker.sdf = lambda p: (tree.query(p)[0], np.zeros_like(p))
+
+    summary = track_sequence(seq, tmp_path / "out", cfg, on_frame=field_at, tracker=tracker)
+    joined = [json.loads(x)["sdf"] for x in (tmp_path / "out" / "track.jsonl").read_text().splitlines()]
+    assert not any(joined[:10]) and not any(joined[20:])
+    assert sum(joined[10:20]) >= 8
+    saved = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert saved["sdf_frames"] == summary.sdf_frames == sum(joined)
+    assert saved["sdf_from"] == summary.sdf_from == joined.index(True)
+
+
 def test_the_end_of_run_field_keeps_no_rays(synth_seq):
     """The end-of-run mesh refits the field on every keyframe; the rays gathered for it (about 1 MB a keyframe)
     are not kept after it."""

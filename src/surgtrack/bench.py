@@ -114,9 +114,10 @@ def _run_method(method: str, names: list[str], root: Path, first_mask_only: bool
         per_seq[name] = {"add_s_auc": m["add_s_auc"], "add_auc": m["add_auc"], "cd_cm": m["cd_cm"],
                          "add_s_auc_full": m["add_s_auc_full"], "add_auc_full": m["add_auc_full"],
                          "lost": summary.lost, "wrong": m["wrong"], "frames": summary.frames, "fps": summary.fps,
+                         "sdf_frames": summary.sdf_frames, "sdf_from": summary.sdf_from,
                          "stage_ms": summary.stage_ms, "seconds": time.perf_counter() - t0}
         log(f"{method:>15} {name:<18} ADD-S {m['add_s_auc']:6.2f}  ADD {m['add_auc']:6.2f}  "
-            f"lost {summary.lost:3d}  {summary.fps:5.1f} fps")
+            f"lost {summary.lost:3d}  L_SDF {summary.sdf_frames:3d}  {summary.fps:5.1f} fps")
     return per_seq, errors, first, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 

@@ -363,6 +363,7 @@ def live(
         source = RealSenseSource(file, width, height, fps)
     except RealSenseError as e:
         fail(str(e))
+    from .pipeline import frame_record
     from .tracker import LOST, RELOCALISED, TRACKED, SurgTracker, TrackResult
 
     streamer = writer = tracker = None
@@ -404,8 +405,7 @@ def live(
             if streamer is not None:
                 streamer.send(result)
             if writer is not None:
-                writer.write(frame.id, result.pose, {"status": result.status, "confidence": round(result.confidence, 4),
-                                                     "ms": {k: round(v * 1e3, 2) for k, v in result.timings.items()}})
+                writer.write(frame.id, result.pose, frame_record(result))
             if overlay is not None:
                 overlay.write(frame, result)
             counts[result.status] = counts.get(result.status, 0) + 1

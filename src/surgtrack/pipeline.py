@@ -15,11 +15,14 @@ from .tracker import LOST, SurgTracker, TrackResult
 
 @dataclass
 class RunSummary:
-    """Counts and speed of one run; ``stage_ms`` is the mean time per frame of each tracking stage."""
+    """Counts and speed of one run; ``stage_ms`` is the mean time per frame of each tracking stage; ``sdf_frames``
+    the frames whose pose had L_SDF (eq. 11) in its graph, ``sdf_from`` the first of them (None: none had)."""
 
     frames: int = 0
     lost: int = 0
     relocalised: int = 0
+    sdf_frames: int = 0
+    sdf_from: int | None = None
     seconds: float = 0.0
     stage_ms: dict[str, float] = field(default_factory=dict)
 
@@ -29,8 +32,16 @@ class RunSummary:
 
     def to_dict(self) -> dict:
         return {"frames": self.frames, "lost": self.lost, "relocalised": self.relocalised,
+                "sdf_frames": self.sdf_frames, "sdf_from": self.sdf_from,
                 "seconds": round(self.seconds, 3), "fps": round(self.fps, 2),
                 "stage_ms": {k: round(v, 2) for k, v in self.stage_ms.items()}}
+
+
+def frame_record(result: TrackResult) -> dict:
+    """A frame's line of OUT/track.jsonl beside its frame id: status, confidence, whether L_SDF (eq. 11) was in its
+    graph, and ms per stage."""
+    return {"status": result.status, "confidence": round(result.confidence, 4), "sdf": result.sdf,
+            "ms": {k: round(v * 1e3, 2) for k, v in result.timings.items()}}
 
 
 def track_sequence(
@@ -57,21 +68,22 @@ def track_sequence(
             pose = tracker.register(first, first.mask)
         except ValueError as e:
             raise SequenceError(seq.root, str(e)) from None
-        writer.write(first.id, pose, {"status": "tracked", "confidence": 1.0, "ms": {}})
+        writer.write(first.id, pose, frame_record(TrackResult(pose, "tracked", 1.0)))
         summary.frames = 1
         if on_frame is not None:
             on_frame(first, TrackResult(pose, "tracked", 1.0))
         for i in range(1, len(seq)):
             frame = seq[i]
             result = tracker.track(frame, None if first_mask_only else frame.mask)
-            ms = {k: round(v * 1e3, 2) for k, v in result.timings.items()}
-            writer.write(frame.id, result.pose,
-                         {"status": result.status, "confidence": round(result.confidence, 4), "ms": ms})
+            writer.write(frame.id, result.pose, frame_record(result))
             for k, v in result.timings.items():
                 stage_total[k] = stage_total.get(k, 0.0) + v
             summary.frames += 1
             summary.lost += result.status == LOST
             summary.relocalised += result.status == "relocalised"
+            summary.sdf_frames += result.sdf
+            if result.sdf and summary.sdf_from is None:
+                summary.sdf_from = i
             if on_frame is not None:
                 on_frame(frame, result)
         summary.seconds = time.perf_counter() - t0

@@ -58,13 +58,15 @@ TRACKED, LOST, RELOCALISED = "tracked", "lost", "relocalised"
 
 @dataclass
 class TrackResult:
-    """What track() returns: pose (None when lost), status, confidence in [0, 1] and per-stage seconds."""
+    """What track() returns: pose (None when lost), status, confidence in [0, 1], per-stage seconds, the feature
+    inliers, and whether the Instrument SDF's term L_SDF (eq. 11) was in the posture graph that gave the pose."""
 
     pose: np.ndarray | None
     status: str
     confidence: float
     timings: dict[str, float] = field(default_factory=dict)
     inliers: int = 0
+    sdf: bool = False
 
 
 @dataclass(eq=False)
@@ -79,6 +81,7 @@ class _Node:
     normals: np.ndarray
     K_grid: np.ndarray
     distances: tuple[bytes, cKDTree | None, np.ndarray] | None = field(default=None, repr=False)  # of its pose
+    sdf: bool = False  # L_SDF (eq. 11) was in the graph that gave its pose
 
     @cached_property
     def grid_points(self) -> GridPoints:
@@ -294,7 +297,7 @@ class SurgTracker:
         if self.cfg.pool.enabled and self.pool.should_add(pose, predicted_area):
             self._add_keyframe(node, obs)
         clock.lap("pool")
-        return TrackResult(pose, status, confidence, clock.laps, inliers)
+        return TrackResult(pose, status, confidence, clock.laps, inliers, node.sdf)
 
     # -------------------------------------------------------------------------------------------------- stages
 
@@ -600,6 +603,7 @@ class SurgTracker:
                                           cfg.free_space_points))
         poses = optimize_graph(nodes, graph_edges, cfg, self.sdf if use_sdf else None,
                                [0] if use_sdf else [], pairs_2d=pairs, priors=[(0, prior)], free_space=free_space)
+        node.sdf = use_sdf
         return poses[0]
 
     def _field_agrees(self, node: _Node) -> bool:
