@@ -220,7 +220,9 @@ def track(
         if overlay is not None:
             overlay.close()
     stages = ", ".join(f"{k} {v:.1f}" for k, v in summary.stage_ms.items())
-    typer.echo(f"{summary.frames} frames, {summary.lost} lost, {summary.fps:.1f} frames/s ({stages} ms) -> {out}")
+    field = f"L_SDF from frame {summary.sdf_from} on {summary.sdf_frames}" if summary.sdf_frames else "no L_SDF"
+    typer.echo(f"{summary.frames} frames, {summary.lost} lost, {field}, {summary.fps:.1f} frames/s ({stages} ms)"
+               f" -> {out}")
     if video is not None:
         typer.echo(f"wrote {video}")
 
