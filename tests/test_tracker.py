@@ -144,7 +144,8 @@ def test_a_field_that_disagrees_with_the_frame_stays_out_of_the_graph(synth_seq)
 
 def test_each_frame_says_whether_the_field_was_in_its_graph(synth_seq, tmp_path):
     """track.jsonl and summary.json tell which poses had L_SDF (eq. 11) in their graph: none before there is a field,
-    the frames after one fitting the instrument joins, and none while the field disagrees with the frames."""
+    the frames after one fitting the instrument joins, none while the field disagrees with the frames, and none with
+    the term's weight graph.w_s at 0."""
     from scipy.spatial import cKDTree
 
     seq = open_sequence(synth_seq)
@@ -167,6 +168,9 @@ def test_each_frame_says_whether_the_field_was_in_its_graph(synth_seq, tmp_path)
     saved = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert saved["sdf_frames"] == summary.sdf_frames == sum(joined)
     assert saved["sdf_from"] == summary.sdf_from == joined.index(True)
+    cfg.graph.w_s = 0.0  # the term weighs nothing: it is not in the graph
+    tracker = SurgTracker(cfg)
+    assert track_sequence(seq, tmp_path / "w_s0", cfg, on_frame=field_at, tracker=tracker).sdf_frames == 0
 
 
 def test_the_end_of_run_field_keeps_no_rays(synth_seq):

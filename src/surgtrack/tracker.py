@@ -603,7 +603,7 @@ class SurgTracker:
                                           cfg.free_space_points))
         poses = optimize_graph(nodes, graph_edges, cfg, self.sdf if use_sdf else None,
                                [0] if use_sdf else [], pairs_2d=pairs, priors=[(0, prior)], free_space=free_space)
-        node.sdf = use_sdf
+        node.sdf = use_sdf and cfg.w_s > 0
         return poses[0]
 
     def _field_agrees(self, node: _Node) -> bool:
