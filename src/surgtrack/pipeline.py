@@ -68,10 +68,11 @@ def track_sequence(
             pose = tracker.register(first, first.mask)
         except ValueError as e:
             raise SequenceError(seq.root, str(e)) from None
-        writer.write(first.id, pose, frame_record(TrackResult(pose, "tracked", 1.0)))
+        registered = TrackResult(pose, "tracked", 1.0)
+        writer.write(first.id, pose, frame_record(registered))
         summary.frames = 1
         if on_frame is not None:
-            on_frame(first, TrackResult(pose, "tracked", 1.0))
+            on_frame(first, registered)
         for i in range(1, len(seq)):
             frame = seq[i]
             result = tracker.track(frame, None if first_mask_only else frame.mask)
