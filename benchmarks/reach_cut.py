@@ -6,7 +6,7 @@ true pose: of the instrument, and of what lies beside it at its depth.
 DATA holds rendered sequences (``surgtrack synth DATA --suite instrument3d``); MARGIN is the option's value (m,
 default 0.01). For each sequence the reach comes from the first frame's preprocessed masked points
 (`tracker.long_axis`). Every 30th frame from frame 10 is mapped into the first frame's camera by the ground truth, and
-the bound (`masking.within_reach`'s test: further from the line than the reach plus MARGIN) is applied to
+the bound (`masking.within_reach`, at the ground truth's pose of the first camera in frame t) is applied to
 - the true mask's pixels: the instrument the bound would cut even with a perfect pose;
 - the pixels in a 25-pixel ring around the true mask whose depth lies within 3 cm of the instrument's median: a
   hand, a glove or tissue at the instrument's depth, which the bound is there to keep out.
@@ -22,8 +22,9 @@ import numpy as np
 from scipy.ndimage import binary_dilation
 
 from surgtrack.config import TrackerConfig
-from surgtrack.geometry import backproject, inv_T, off_line, transform
+from surgtrack.geometry import inv_T
 from surgtrack.io import open_sequence
+from surgtrack.masking import within_reach
 from surgtrack.preprocess import preprocess
 from surgtrack.tracker import long_axis
 
@@ -35,22 +36,23 @@ def main(data: Path, margin: float) -> None:
         seq = open_sequence(folder)
         gt = seq.gt_poses()
         first = seq[0]
-        centre, direction, reach = long_axis(preprocess(first, first.mask, cfg.preprocess).points()[0])
+        axis = long_axis(preprocess(first, first.mask, cfg.preprocess).points()[0])
         cut, beside = [], []
         for t in range(10, len(seq), 30):
             frame = seq[t]
-            to_first = inv_T(gt[frame.id] @ inv_T(gt[first.id]))  # camera t -> first camera
-            inst, _ = backproject(frame.depth, frame.K, frame.mask)
-            if len(inst) < 50:
+            seen = frame.depth > 0
+            inst = frame.mask & seen
+            if inst.sum() < 50:
                 continue
-            ring = binary_dilation(frame.mask, iterations=25) & ~frame.mask
-            near, _ = backproject(frame.depth, frame.K, ring)
-            near = near[np.abs(near[:, 2] - np.median(inst[:, 2])) < 0.03]
-            for pts, out in ((inst, cut), (near, beside)):
-                if len(pts) >= 50:
-                    out.append(np.mean(off_line(transform(to_first, pts), centre, direction) > reach + margin))
+            ring = binary_dilation(frame.mask, iterations=25) & ~frame.mask & seen
+            ring &= np.abs(frame.depth - np.median(frame.depth[inst])) < 0.03
+            first_in_t = gt[frame.id] @ inv_T(gt[first.id])  # the first camera's frame, seen from camera t
+            for where, out in ((inst, cut), (ring, beside)):
+                if where.sum() >= 50:
+                    kept = within_reach(where, frame.depth, frame.K, first_in_t, axis, margin)
+                    out.append(1.0 - np.mean(kept[where]))
         share = lambda v: f"{100 * np.mean(v):.1f}" if v else "-"  # noqa: E731
-        print(f"{folder.name:16s} {100 * reach:8.1f} {share(cut):>17s} {share(beside):>16s}")
+        print(f"{folder.name:16s} {100 * axis[2]:8.1f} {share(cut):>17s} {share(beside):>16s}")
 
 
 if __name__ == "__main__":

@@ -572,7 +572,9 @@ class SurgTracker:
         model (or a colour region while lost) leaves out what the model's pose leaves out, and the background beside
         it is not known to be free (``graph.free_space_predicted`` trusts it all the same). A frame that came with its
         mask takes ``graph.given_mask_iterations`` Gauss-Newton steps, one on a predicted mask ``graph.iterations``:
-        its mask is found again at the pose they reach (`_remasked`), which fewer steps leave short."""
+        its mask is found again at the pose they reach (`_remasked`), which fewer steps leave short. Sets
+        ``node.sdf`` to whether L_SDF was in the graph (a field that agrees with the frame, `_field_agrees`, and
+        ``graph.w_s`` > 0)."""
         others: list[_Node | Keyframe] = [e[0] for e in edges]
         prior = node.pose.copy()
         for prev in reversed(self.recent):
@@ -589,7 +591,7 @@ class SurgTracker:
         nodes += [GraphNode(o.pose, o.xyz, o.normals, o.K_grid, True, o.grid_points) for o in others]
         index = {id(o): i + 1 for i, o in enumerate(others)}
         graph_edges = [FeatureEdge(0, index[id(ref)], p_cur, p_ref) for ref, p_ref, p_cur in edges]
-        use_sdf = self.sdf is not None and self._field_agrees(node)
+        use_sdf = self.sdf is not None and self.cfg.graph.w_s > 0 and self._field_agrees(node)
         pairs = [p for j in range(1, len(nodes)) for p in ((0, j), (j, 0))]  # the other poses are fixed
         cfg = self.cfg.graph
         if obs is not None and obs.mask_given:
@@ -603,7 +605,7 @@ class SurgTracker:
                                           cfg.free_space_points))
         poses = optimize_graph(nodes, graph_edges, cfg, self.sdf if use_sdf else None,
                                [0] if use_sdf else [], pairs_2d=pairs, priors=[(0, prior)], free_space=free_space)
-        node.sdf = use_sdf and cfg.w_s > 0
+        node.sdf = use_sdf
         return poses[0]
 
     def _field_agrees(self, node: _Node) -> bool:
