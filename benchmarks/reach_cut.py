@@ -29,6 +29,11 @@ from surgtrack.preprocess import preprocess
 from surgtrack.tracker import long_axis
 
 
+def _percent(shares: list[float]) -> str:
+    """The mean of ``shares`` in percent, or "-" when no frame had any."""
+    return f"{100 * np.mean(shares):.1f}" if shares else "-"
+
+
 def main(data: Path, margin: float) -> None:
     cfg = TrackerConfig()
     print(f"{'sequence':16s} {'reach cm':>8s} {'instrument cut %':>17s} {'beside it cut %':>16s}")
@@ -51,8 +56,7 @@ def main(data: Path, margin: float) -> None:
                 if where.sum() >= 50:
                     kept = within_reach(where, frame.depth, frame.K, first_in_t, axis, margin)
                     out.append(1.0 - np.mean(kept[where]))
-        share = lambda v: f"{100 * np.mean(v):.1f}" if v else "-"  # noqa: E731
-        print(f"{folder.name:16s} {100 * axis[2]:8.1f} {share(cut):>17s} {share(beside):>16s}")
+        print(f"{folder.name:16s} {100 * axis[2]:8.1f} {_percent(cut):>17s} {_percent(beside):>16s}")
 
 
 if __name__ == "__main__":
