@@ -22,7 +22,7 @@ from surgtrack.igtl import PoseStreamer, pose_to_igtl
 from surgtrack.io import Frame, Sequence, open_sequence, read_poses
 from surgtrack.pipeline import track_sequence
 from surgtrack.realsense import RealSenseError, RealSenseSource, box_mask, parse_box, record_sequence
-from surgtrack.tracker import LOST, TrackResult
+from surgtrack.tracker import LOST, RELOCALISED, TrackResult
 
 
 class _Played(Sequence):
@@ -304,6 +304,13 @@ def test_live_tracks_a_recording_and_streams(live_run: dict, recording: Path, sy
     seq = open_sequence(synth_seq)
     records = [json.loads(line) for line in (out / "track.jsonl").read_text().splitlines()]
     assert [r["frame"] for r in records] == seq.ids
+    # summary.json and the last line count what track.jsonl holds, as `surgtrack track` does
+    statuses = [r["status"] for r in records]
+    counts = (len(records), statuses.count(LOST), statuses.count(RELOCALISED))
+    summary = json.loads((out / "summary.json").read_text())
+    assert (summary["frames"], summary["lost"], summary["relocalised"]) == counts
+    assert summary["sdf_frames"] == sum(r["sdf"] for r in records)
+    assert run.stdout.strip().splitlines()[-1].startswith("{} frames, {} lost, {} relocalised".format(*counts))
     poses = read_poses(out / "ob_in_cam")
     assert set(poses) == {r["frame"] for r in records if r["status"] != LOST}
     assert len(poses) >= 0.8 * len(seq)

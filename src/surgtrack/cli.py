@@ -219,10 +219,7 @@ def track(
     finally:
         if overlay is not None:
             overlay.close()
-    stages = ", ".join(f"{k} {v:.1f}" for k, v in summary.stage_ms.items())
-    field = f"L_SDF from frame {summary.sdf_from} on {summary.sdf_frames}" if summary.sdf_frames else "no L_SDF"
-    typer.echo(f"{summary.frames} frames, {summary.lost} lost, {field}, {summary.fps:.1f} frames/s ({stages} ms)"
-               f" -> {out}")
+    typer.echo(f"{summary.line()} -> {out}")
     if video is not None:
         typer.echo(f"wrote {video}")
 
@@ -365,13 +362,12 @@ def live(
         source = RealSenseSource(file, width, height, fps)
     except RealSenseError as e:
         fail(str(e))
-    from .pipeline import frame_record
-    from .tracker import LOST, RELOCALISED, TRACKED, SurgTracker, TrackResult
+    from .pipeline import RunSummary, frame_record
+    from .tracker import TRACKED, SurgTracker, TrackResult
 
     streamer = writer = tracker = None
     overlay: _OverlayWriter | None = None
-    counts = {TRACKED: 0, LOST: 0, RELOCALISED: 0}
-    n = 0
+    summary = RunSummary()
     t0 = time.perf_counter()
     try:
         if not no_igtl:
@@ -388,7 +384,7 @@ def live(
         tracker = SurgTracker(cfg, model=instrument_model)
         if video is not None:
             overlay = _OverlayWriter(video, tracker, source.fps)
-        for frame in source:
+        for n, frame in enumerate(source):
             if n == 0:
                 if first_mask is None:
                     try:
@@ -410,9 +406,8 @@ def live(
                 writer.write(frame.id, result.pose, frame_record(result))
             if overlay is not None:
                 overlay.write(frame, result)
-            counts[result.status] = counts.get(result.status, 0) + 1
-            n += 1
-            if max_frames is not None and n >= max_frames:
+            summary.add(n, result)
+            if max_frames is not None and summary.frames >= max_frames:
                 break
     except KeyboardInterrupt:
         typer.echo("stopped")
@@ -425,15 +420,16 @@ def live(
             fitter.close()
         if streamer is not None:
             streamer.close()
+        summary.seconds = time.perf_counter() - t0
         if writer is not None:
             writer.close()
+            if summary.frames:
+                (out / "summary.json").write_text(json.dumps(summary.to_dict(), indent=2))
         if overlay is not None:
             overlay.close()
-    if n == 0:
+    if summary.frames == 0:
         fail(f"{file or 'camera'}: no frames")
-    seconds = time.perf_counter() - t0
-    typer.echo(f"{n} frames, {counts[LOST]} lost, {counts[RELOCALISED]} relocalised, {n / seconds:.1f} frames/s"
-               + (f" -> {out}" if out is not None else ""))
+    typer.echo(summary.line() + (f" -> {out}" if out is not None else ""))
 
 
 @app.command()

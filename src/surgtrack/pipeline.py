@@ -10,7 +10,7 @@ from pathlib import Path
 
 from .config import TrackerConfig
 from .io import Frame, ResultWriter, Sequence, SequenceError
-from .tracker import LOST, SurgTracker, TrackResult
+from .tracker import LOST, RELOCALISED, TRACKED, SurgTracker, TrackResult
 
 
 @dataclass
@@ -25,10 +25,33 @@ class RunSummary:
     sdf_from: int | None = None
     seconds: float = 0.0
     stage_ms: dict[str, float] = field(default_factory=dict)
+    _stage_s: dict[str, float] = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def fps(self) -> float:
         return self.frames / self.seconds if self.seconds > 0 else 0.0
+
+    def add(self, index: int, result: TrackResult) -> None:
+        """Count frame ``index``'s result. Frame 0, registered from its mask, counts as a frame only; ``stage_ms``
+        is the mean over the frames tracked after it."""
+        self.frames += 1
+        if index == 0:
+            return
+        self.lost += result.status == LOST
+        self.relocalised += result.status == RELOCALISED
+        self.sdf_frames += result.sdf
+        if result.sdf and self.sdf_from is None:
+            self.sdf_from = index
+        for k, v in result.timings.items():
+            self._stage_s[k] = self._stage_s.get(k, 0.0) + v
+        self.stage_ms = {k: v * 1e3 / (self.frames - 1) for k, v in self._stage_s.items()}
+
+    def line(self) -> str:
+        """The run in one line: frames, lost, re-localised, L_SDF, frames/s and ms per stage."""
+        sdf = f"L_SDF from frame {self.sdf_from} on {self.sdf_frames}" if self.sdf_frames else "no L_SDF"
+        stages = ", ".join(f"{k} {v:.1f}" for k, v in self.stage_ms.items())
+        return (f"{self.frames} frames, {self.lost} lost, {self.relocalised} relocalised, {sdf}, "
+                f"{self.fps:.1f} frames/s ({stages} ms)")
 
     def to_dict(self) -> dict:
         return {"frames": self.frames, "lost": self.lost, "relocalised": self.relocalised,
@@ -58,7 +81,6 @@ def track_sequence(
     tracker = tracker or SurgTracker(config)
     out = Path(out)
     summary = RunSummary()
-    stage_total: dict[str, float] = {}
     with ResultWriter(out) as writer:
         (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
         t0 = time.perf_counter()
@@ -68,28 +90,19 @@ def track_sequence(
             pose = tracker.register(first, first.mask)
         except ValueError as e:
             raise SequenceError(seq.root, str(e)) from None
-        registered = TrackResult(pose, "tracked", 1.0)
+        registered = TrackResult(pose, TRACKED, 1.0)
         writer.write(first.id, pose, frame_record(registered))
-        summary.frames = 1
+        summary.add(0, registered)
         if on_frame is not None:
             on_frame(first, registered)
         for i in range(1, len(seq)):
             frame = seq[i]
             result = tracker.track(frame, None if first_mask_only else frame.mask)
             writer.write(frame.id, result.pose, frame_record(result))
-            for k, v in result.timings.items():
-                stage_total[k] = stage_total.get(k, 0.0) + v
-            summary.frames += 1
-            summary.lost += result.status == LOST
-            summary.relocalised += result.status == "relocalised"
-            summary.sdf_frames += result.sdf
-            if result.sdf and summary.sdf_from is None:
-                summary.sdf_from = i
+            summary.add(i, result)
             if on_frame is not None:
                 on_frame(frame, result)
         summary.seconds = time.perf_counter() - t0
-        n = max(summary.frames - 1, 1)
-        summary.stage_ms = {k: v * 1e3 / n for k, v in stage_total.items()}
         mesh = getattr(tracker, "mesh", lambda: None)()
         if mesh is not None:
             writer.write_mesh(mesh)
