@@ -14,8 +14,8 @@ from surgtrack.config import TrackerConfig
 from surgtrack.geometry import backproject, depth_to_xyz, make_T, transform
 from surgtrack.io import open_sequence, read_poses
 from surgtrack.metrics import evaluate
-from surgtrack.pipeline import track_sequence
-from surgtrack.tracker import LOST, SurgTracker, object_origin, shaft_range
+from surgtrack.pipeline import RunSummary, track_sequence
+from surgtrack.tracker import LOST, RELOCALISED, TRACKED, SurgTracker, TrackResult, object_origin, shaft_range
 
 
 def test_object_origin_ignores_outliers():
@@ -171,6 +171,22 @@ def test_each_frame_says_whether_the_field_was_in_its_graph(synth_seq, tmp_path)
     cfg.graph.w_s = 0.0  # the term weighs nothing: it is not in the graph
     tracker = SurgTracker(cfg)
     assert track_sequence(seq, tmp_path / "w_s0", cfg, on_frame=field_at, tracker=tracker).sdf_frames == 0
+
+
+def test_the_run_summary_counts_frames_and_averages_the_tracked_frames_stage_times():
+    """`track` and `live` print and save these counts: the registered first frame is a frame but has no stages."""
+    summary = RunSummary()
+    summary.add(0, TrackResult(np.eye(4), TRACKED, 1.0))
+    summary.add(1, TrackResult(np.eye(4), TRACKED, 0.9, {"graph": 0.010}, sdf=True))
+    summary.add(2, TrackResult(None, LOST, 0.0, {"graph": 0.030}))
+    summary.add(3, TrackResult(np.eye(4), RELOCALISED, 0.8, {"graph": 0.020, "ransac": 0.006}, sdf=True))
+    assert (summary.frames, summary.lost, summary.relocalised) == (4, 1, 1)
+    assert (summary.sdf_frames, summary.sdf_from) == (2, 1)
+    assert summary.stage_ms == pytest.approx({"graph": 20.0, "ransac": 2.0})
+    summary.seconds = 2.0
+    assert summary.line() == ("4 frames, 1 lost, 1 relocalised, L_SDF from frame 1 on 2, 2.0 frames/s "
+                              "(graph 20.0, ransac 2.0 ms)")
+    assert summary.to_dict()["stage_ms"] == {"graph": 20.0, "ransac": 2.0}
 
 
 def test_the_end_of_run_field_keeps_no_rays(synth_seq):
