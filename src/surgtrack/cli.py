@@ -424,7 +424,7 @@ def live(
         if writer is not None:
             writer.close()
             if summary.frames:
-                (out / "summary.json").write_text(json.dumps(summary.to_dict(), indent=2))
+                summary.write(out)
         if overlay is not None:
             overlay.close()
     if summary.frames == 0:

@@ -24,16 +24,20 @@ class RunSummary:
     sdf_frames: int = 0
     sdf_from: int | None = None
     seconds: float = 0.0
-    stage_ms: dict[str, float] = field(default_factory=dict)
-    _stage_s: dict[str, float] = field(default_factory=dict, repr=False, compare=False)
+    stage_s: dict[str, float] = field(default_factory=dict)  # total seconds of each stage over the tracked frames
 
     @property
     def fps(self) -> float:
         return self.frames / self.seconds if self.seconds > 0 else 0.0
 
+    @property
+    def stage_ms(self) -> dict[str, float]:
+        """Mean ms per tracked frame of each stage (the registered first frame has none)."""
+        n = max(self.frames - 1, 1)
+        return {k: v * 1e3 / n for k, v in self.stage_s.items()}
+
     def add(self, index: int, result: TrackResult) -> None:
-        """Count frame ``index``'s result. Frame 0, registered from its mask, counts as a frame only; ``stage_ms``
-        is the mean over the frames tracked after it."""
+        """Count frame ``index``'s result. Frame 0, registered from its mask, counts as a frame only."""
         self.frames += 1
         if index == 0:
             return
@@ -43,8 +47,7 @@ class RunSummary:
         if result.sdf and self.sdf_from is None:
             self.sdf_from = index
         for k, v in result.timings.items():
-            self._stage_s[k] = self._stage_s.get(k, 0.0) + v
-        self.stage_ms = {k: v * 1e3 / (self.frames - 1) for k, v in self._stage_s.items()}
+            self.stage_s[k] = self.stage_s.get(k, 0.0) + v
 
     def line(self) -> str:
         """The run in one line: frames, lost, re-localised, L_SDF, frames/s and ms per stage."""
@@ -52,6 +55,10 @@ class RunSummary:
         stages = ", ".join(f"{k} {v:.1f}" for k, v in self.stage_ms.items())
         return (f"{self.frames} frames, {self.lost} lost, {self.relocalised} relocalised, {sdf}, "
                 f"{self.fps:.1f} frames/s ({stages} ms)")
+
+    def write(self, out: Path) -> None:
+        """OUT/summary.json."""
+        (out / "summary.json").write_text(json.dumps(self.to_dict(), indent=2))
 
     def to_dict(self) -> dict:
         return {"frames": self.frames, "lost": self.lost, "relocalised": self.relocalised,
@@ -106,6 +113,6 @@ def track_sequence(
         mesh = getattr(tracker, "mesh", lambda: None)()
         if mesh is not None:
             writer.write_mesh(mesh)
-    (out / "summary.json").write_text(json.dumps(summary.to_dict(), indent=2))
+    summary.write(out)
     return summary
 
