@@ -55,33 +55,43 @@ class FeatureExtractor:
         if box is None:
             return _empty(self.norm)
         rs, cs = box
-        rgb = obs.frame.rgb[rs, cs]
+        image = obs.frame.rgb[rs, cs]
+        if self.kind != "xfeat":
+            image = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+        detect_mask = cv2.dilate(obs.mask[rs, cs].astype(np.uint8), np.ones((5, 5), np.uint8))
+        # A small instrument on screen gets few keypoints: detect on an enlarged crop.
+        scale = float(np.clip(self.min_crop / max(image.shape[:2]), 1.0, 3.0))
+        if scale > 1.0:
+            image = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC)
+            detect_mask = cv2.resize(detect_mask, (image.shape[1], image.shape[0]), interpolation=cv2.INTER_NEAREST)
         if self.kind == "xfeat":
-            uv, desc = self._detect_xfeat(rgb)
+            uv, desc = self._detect_xfeat(image, detect_mask)
         else:
-            gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
-            detect_mask = cv2.dilate(obs.mask[rs, cs].astype(np.uint8), np.ones((5, 5), np.uint8))
-            # A small instrument on screen gets few keypoints: detect on an enlarged crop.
-            scale = float(np.clip(self.min_crop / max(gray.shape), 1.0, 3.0))
-            if scale > 1.0:
-                gray = cv2.resize(gray, None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC)
-                detect_mask = cv2.resize(detect_mask, (gray.shape[1], gray.shape[0]), interpolation=cv2.INTER_NEAREST)
-            kps, desc = self._cv.detectAndCompute(gray, detect_mask)
-            if desc is None or not kps:
-                return _empty(self.norm)
-            uv = (np.array([k.pt for k in kps], np.float32) + 0.5) / scale - 0.5
+            kps, desc = self._cv.detectAndCompute(image, detect_mask)
+            uv = np.array([k.pt for k in kps], np.float32).reshape(-1, 2)
+        if desc is None or len(uv) == 0:
+            return _empty(self.norm)
+        uv = (uv + 0.5) / scale - 0.5
         uv = uv + np.array([cs.start, rs.start], np.float32)
         ui = np.clip(np.round(uv[:, 0]).astype(int), 0, obs.valid.shape[1] - 1)
         vi = np.clip(np.round(uv[:, 1]).astype(int), 0, obs.valid.shape[0] - 1)
         keep = obs.valid[vi, ui]
         return Features(uv[keep], desc[keep], obs.xyz[vi[keep], ui[keep]], obs.normals[vi[keep], ui[keep]])
 
-    def _detect_xfeat(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _detect_xfeat(self, rgb: np.ndarray, detect_mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """XFeat keypoints inside ``detect_mask``; the crop is padded (edge pixels repeated) to a multiple of 32 on
+        each side, the network's stride, which it would otherwise resample to (and fail on below 32 pixels)."""
         import torch
 
-        x = torch.from_numpy(rgb).permute(2, 0, 1)[None].float() / 255.0
+        h, w = rgb.shape[:2]
+        padded = np.pad(rgb, ((0, -h % 32), (0, -w % 32), (0, 0)), mode="edge")
+        x = torch.from_numpy(padded).permute(2, 0, 1)[None].float() / 255.0
         out = self._xfeat.detectAndCompute(x.to(self._xfeat.dev), top_k=self.max_keypoints)[0]
-        return out["keypoints"].cpu().numpy().astype(np.float32), out["descriptors"].cpu().numpy()
+        uv = out["keypoints"].cpu().numpy().astype(np.float32).reshape(-1, 2)
+        ui, vi = np.round(uv[:, 0]).astype(int), np.round(uv[:, 1]).astype(int)
+        inside = (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
+        inside[inside] = detect_mask[vi[inside], ui[inside]] > 0
+        return uv[inside], out["descriptors"].cpu().numpy()[inside]
 
 
 def _load_xfeat(max_keypoints: int):
