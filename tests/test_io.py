@@ -14,6 +14,7 @@ import pytest
 import trimesh
 
 import surgtrack.io as sio
+from surgtrack.config import TrackerConfig
 from surgtrack.geometry import make_T, so3_exp
 from surgtrack.io import (
     BopScene,
@@ -302,6 +303,17 @@ def test_pose_writes_are_atomic(tmp_path: Path, monkeypatch: pytest.MonkeyPatch)
     monkeypatch.undo()
     np.testing.assert_allclose(read_poses(path.parent)["000000"], pose(1), atol=1e-8)  # old pose intact
     assert list(read_poses(path.parent)) == ["000000"]  # the half-done temporary is never read as a pose
+
+
+def test_result_writer_records_the_runs_config_first(tmp_path: Path):
+    cfg = TrackerConfig()
+    cfg.pool.K = 4
+    out = tmp_path / "out"
+    with ResultWriter(out, cfg.to_dict()):
+        assert TrackerConfig.from_dict(json.loads((out / "config.json").read_text())).pool.K == 4  # before any frame
+    with ResultWriter(out):  # a writer given no config leaves the one there
+        pass
+    assert json.loads((out / "config.json").read_text())["pool"]["K"] == 4
 
 
 def test_result_writer_mesh(tmp_path: Path):

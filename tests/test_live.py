@@ -313,6 +313,7 @@ def test_live_tracks_a_recording_and_streams(live_run: dict, recording: Path, sy
     assert run.stdout.strip().splitlines()[-1].startswith("{} frames, {} lost, {} relocalised".format(*counts))
     poses = read_poses(out / "ob_in_cam")
     assert set(poses) == {r["frame"] for r in records if r["status"] != LOST}
+    assert json.loads((out / "config.json").read_text()) == json.loads(fast_config.read_text())  # what it ran with
     assert len(poses) >= 0.8 * len(seq)
     # The frames the recording plays back, tracked from the same first mask by track_sequence, give the same poses
     # to the last bit: the live loop adds nothing to tracking. (Frames read from the folder differ from them by float

@@ -337,7 +337,6 @@ def live(
     = None,
 ) -> None:
     """Track an instrument live from a RealSense camera (or a recording) and stream its pose over OpenIGTLink."""
-    import json
     import time
 
     from .io import ResultWriter, read_mask
@@ -379,8 +378,7 @@ def live(
                 fail(f"OpenIGTLink server on port {igtl_port}: {e}")
             typer.echo(f"streaming {device_name} (mm) and {status_device} over OpenIGTLink on port {streamer.port}")
         if out is not None:
-            writer = ResultWriter(out)
-            (out / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
+            writer = ResultWriter(out, cfg.to_dict())
         tracker = SurgTracker(cfg, model=instrument_model)
         if video is not None:
             overlay = _OverlayWriter(video, tracker, source.fps)

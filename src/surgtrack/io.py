@@ -459,15 +459,18 @@ def read_poses(folder: Path | str) -> dict[str, np.ndarray]:
 
 
 class ResultWriter:
-    """Writes OUT/ob_in_cam/NNNNNN.txt as each frame is tracked, OUT/track.jsonl and OUT/mesh.ply."""
+    """Writes OUT/config.json (the run's ``config``, when given) at the start, OUT/ob_in_cam/NNNNNN.txt as each
+    frame is tracked, OUT/track.jsonl and OUT/mesh.ply."""
 
-    def __init__(self, out: Path | str):
+    def __init__(self, out: Path | str, config: dict | None = None):
         self.out = Path(out)
         self.out.mkdir(parents=True, exist_ok=True)
         (self.out / "ob_in_cam").mkdir(exist_ok=True)
         # A new run replaces an earlier run's result in the same folder, so no stale pose or mesh mixes in.
         for stale in [*(self.out / "ob_in_cam").glob("*.txt"), self.out / "mesh.ply"]:
             stale.unlink(missing_ok=True)
+        if config is not None:
+            _atomic_write_text(self.out / "config.json", json.dumps(config, indent=2))
         self._log = open(self.out / "track.jsonl", "w")
 
     def write(self, frame_id: str, T: np.ndarray | None, record: dict) -> None:

@@ -88,8 +88,7 @@ def track_sequence(
     tracker = tracker or SurgTracker(config)
     out = Path(out)
     summary = RunSummary()
-    with ResultWriter(out) as writer:
-        (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
+    with ResultWriter(out, config.to_dict()) as writer:
         t0 = time.perf_counter()
         first = seq[0]
         assert first.mask is not None  # the readers guarantee a first-frame mask
