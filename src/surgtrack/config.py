@@ -95,7 +95,6 @@ class GraphConfig:
     free_space_margin: float = 2.0  # pixels off the mask before L_FS acts (mask edges, mixed depth)
     free_space_points: int = 1500  # model points (strided) that L_FS projects
     free_space_predicted: bool = False  # L_FS also on frames that came without a mask (predicted masks)
-    slide_velocity: float = 1.0  # share of the last slide along the long axis the prediction carries on
 
 
 @dataclass

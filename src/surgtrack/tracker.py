@@ -549,21 +549,11 @@ class SurgTracker:
 
     def _predicted_pose(self) -> np.ndarray:
         """Constant-velocity prediction from the last two tracked frames when they are consecutive (a gap, such
-        as a loss, gives no velocity), else the last pose. Of the last motion's slide along the instrument's long
-        axis (`long_axis` of the first keyframe) it carries on the share ``graph.slide_velocity``: along a shaft
-        whose ends are hidden nothing in the next frame corrects a wrong slide, so a full share carries one
-        wrong step on frame after frame."""
+        as a loss, gives no velocity), else the last pose."""
         if len(self.recent) < 2 or self.lost or self.recent[-1].index - self.recent[-2].index != 1:
             return self.recent[-1].pose
         a, b = self.recent[-2].pose, self.recent[-1].pose
-        share = self.cfg.graph.slide_velocity
-        if share == 1.0 or self._axis is None:
-            pred = b @ inv_T(a) @ b
-        else:
-            D = inv_T(a) @ b  # the last frame's motion in the object frame (b = a D); the prediction is b D
-            centre, axis, _ = self._axis
-            D[:3, 3] -= (1.0 - share) * float((D[:3, :3] @ centre + D[:3, 3] - centre) @ axis) * axis
-            pred = b @ D
+        pred = b @ inv_T(a) @ b
         return pred if self._plausible(pred) else b
 
     def _plausible(self, pose: np.ndarray) -> bool:
