@@ -121,6 +121,7 @@ class FailureConfig:
     # of its silhouette (masking.seen_past) on seen_past_frames frames in a row.
     max_seen_past: float = 0.6  # share of the silhouette (1.0: off)
     seen_past_frames: int = 3
+    seen_past_given: bool = False  # the same check on frames that came with their mask
 
 
 @dataclass

@@ -284,7 +284,7 @@ class SurgTracker:
         confidence = self._confidence(node)
         if confidence < self.cfg.failure.min_confidence:
             return self._lose(clock, confidence)
-        if mask is None and self._sees_past(frame, pose):
+        if (mask is None or self.cfg.failure.seen_past_given) and self._sees_past(frame, pose):
             return self._lose(clock, confidence)
         status = RELOCALISED if self.lost else TRACKED
         if mask is None and status == TRACKED:
