@@ -258,21 +258,24 @@ def test_without_masks_the_search_starts_where_the_instrument_was_last_seen(synt
     assert np.linalg.norm(centres[0] - seen) < 0.005
 
 
-def test_without_masks_a_pose_the_camera_sees_through_is_reported_lost(synth_seq):
+def test_a_pose_the_camera_sees_through_is_reported_lost(synth_seq):
     """From frame 4 the instrument is gone (the frame sees 5 cm past where it was) but for a piece of it that stays
     where frame 3 had it, like a fingertip of its colour at its depth. The model fits the piece, so frame by frame
     a pose holds; but the camera sees through most of the model's silhouette there, and after
     ``failure.seen_past_frames`` such frames (two here) the tracker says it has lost the instrument. With the check
-    off it reports every one of those frames tracked."""
+    off it reports every one of those frames tracked. Frames that come with their mask (here the piece's) are
+    checked only with ``failure.seen_past_given``."""
     seq = open_sequence(synth_seq)
     last = seq[3]
     v, u = np.mgrid[: last.depth.shape[0], : last.depth.shape[1]]
 
-    def statuses(max_seen_past: float) -> list[str]:
+    def statuses(max_seen_past: float, given: bool = False, check_given: bool = False) -> list[str]:
         cfg = TrackerConfig()
         cfg.sdf.enabled = False
         cfg.failure.max_seen_past = max_seen_past
         cfg.failure.seen_past_frames = 2
+        cfg.failure.seen_past_given = check_given
+        cfg.graph.w_fs = 0.0  # L_FS would pull a frame with its mask off the piece, and it would be lost at once
         cfg.failure.min_pixels = 30  # a piece of a shaft at 320 x 240
         tracker = SurgTracker(cfg)
         tracker.register(seq[0], seq[0].mask)
@@ -287,11 +290,14 @@ def test_without_masks_a_pose_the_camera_sees_through_is_reported_lost(synth_seq
             depth[piece] = last.depth[piece]
             rgb = frame.rgb.copy()
             rgb[piece] = last.rgb[piece]
-            out.append(tracker.track(replace(frame, rgb=rgb, depth=depth), None).status)
+            out.append(tracker.track(replace(frame, rgb=rgb, depth=depth), piece if given else None).status)
         return out
 
+    default = TrackerConfig().failure.max_seen_past
     assert LOST not in statuses(1.0)
-    assert LOST in statuses(TrackerConfig().failure.max_seen_past)[:2]
+    assert LOST in statuses(default)[:2]
+    assert LOST not in statuses(default, given=True)
+    assert LOST in statuses(default, given=True, check_given=True)[:2]
 
 
 def _ghost_beside(tracker: SurgTracker, pose: np.ndarray, mask: np.ndarray, offset: float) -> np.ndarray:

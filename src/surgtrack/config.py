@@ -117,11 +117,11 @@ class FailureConfig:
     appearance_depth_tol: float = 0.005  # m, a frame's point is seen by a keyframe when its depth agrees this well
     appearance_min_points: int = 100  # fewer points seen by every keyframe: no appearance check
     min_confidence: float = 0.25
-    # No mask given: lost when the frame sees past the model (by graph.free_space_tol) over more than max_seen_past
-    # of its silhouette (masking.seen_past) on seen_past_frames frames in a row.
+    # Lost when the frame sees past the model (by graph.free_space_tol) over more than max_seen_past of its
+    # silhouette (masking.seen_past) on seen_past_frames frames in a row: the pose is on something else.
     max_seen_past: float = 0.6  # share of the silhouette (1.0: off)
     seen_past_frames: int = 3
-    seen_past_given: bool = False  # the same check on frames that came with their mask
+    seen_past_given: bool = True  # also on frames that came with their mask (False: frames without a mask only)
 
 
 @dataclass
