@@ -79,22 +79,19 @@ class FeatureExtractor:
         return Features(uv[keep], desc[keep], obs.xyz[vi[keep], ui[keep]], obs.normals[vi[keep], ui[keep]])
 
     def _detect_xfeat(self, rgb: np.ndarray, detect_mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The ``max_keypoints`` best XFeat keypoints inside ``detect_mask``. The crop is padded (edge pixels
-        repeated) to a multiple of 32 on each side, the network's stride, which it would otherwise resample to (and
-        fail on below 32 pixels); every keypoint of the crop is scored, since the background around a thin
-        instrument would otherwise take most of the best ``max_keypoints``."""
+        """XFeat keypoints inside ``detect_mask``; the crop is padded (edge pixels repeated) to a multiple of 32 on
+        each side, the network's stride, which it would otherwise resample to (and fail on below 32 pixels)."""
         import torch
 
         h, w = rgb.shape[:2]
         padded = np.pad(rgb, ((0, -h % 32), (0, -w % 32), (0, 0)), mode="edge")
         x = torch.from_numpy(padded).permute(2, 0, 1)[None].float() / 255.0
-        out = self._xfeat.detectAndCompute(x.to(self._xfeat.dev), top_k=padded.shape[0] * padded.shape[1])[0]
-        uv = out["keypoints"].cpu().numpy().astype(np.float32).reshape(-1, 2)  # best first
+        out = self._xfeat.detectAndCompute(x.to(self._xfeat.dev), top_k=self.max_keypoints)[0]
+        uv = out["keypoints"].cpu().numpy().astype(np.float32).reshape(-1, 2)
         ui, vi = np.round(uv[:, 0]).astype(int), np.round(uv[:, 1]).astype(int)
-        inside = (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h) & (out["scores"].cpu().numpy() > 0)  # -1: no keypoint
+        inside = (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
         inside[inside] = detect_mask[vi[inside], ui[inside]] > 0
-        keep = np.flatnonzero(inside)[: self.max_keypoints]
-        return uv[keep], out["descriptors"].cpu().numpy()[keep]
+        return uv[inside], out["descriptors"].cpu().numpy()[inside]
 
 
 def _load_xfeat(max_keypoints: int):
