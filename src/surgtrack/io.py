@@ -436,7 +436,8 @@ def load_points(path: Path) -> np.ndarray:
 # ------------------------------------------------------------------------------------------------ writing
 
 
-def _atomic_write_text(path: Path, text: str) -> None:
+def write_text_atomic(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary file: a run stopped mid-write leaves the old file whole."""
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(text)
     os.replace(tmp, path)
@@ -449,7 +450,7 @@ def format_pose(T: np.ndarray) -> str:
 def write_pose(path: Path, T: np.ndarray) -> None:
     """Write a 4x4 pose atomically: a crash never leaves a half-written file."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    _atomic_write_text(path, format_pose(T))
+    write_text_atomic(path, format_pose(T))
 
 
 def read_poses(folder: Path | str) -> dict[str, np.ndarray]:
@@ -470,7 +471,7 @@ class ResultWriter:
         for stale in [*(self.out / "ob_in_cam").glob("*.txt"), self.out / "mesh.ply"]:
             stale.unlink(missing_ok=True)
         if config is not None:
-            _atomic_write_text(self.out / "config.json", json.dumps(config, indent=2))
+            write_text_atomic(self.out / "config.json", json.dumps(config, indent=2))
         self._log = open(self.out / "track.jsonl", "w")
 
     def write(self, frame_id: str, T: np.ndarray | None, record: dict) -> None:

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from .config import TrackerConfig
-from .io import Frame, ResultWriter, Sequence, SequenceError
+from .io import Frame, ResultWriter, Sequence, SequenceError, write_text_atomic
 from .tracker import LOST, RELOCALISED, TRACKED, SurgTracker, TrackResult
 
 
@@ -57,8 +57,8 @@ class RunSummary:
                 f"{self.fps:.1f} frames/s ({stages} ms)")
 
     def write(self, out: Path) -> None:
-        """OUT/summary.json."""
-        (out / "summary.json").write_text(json.dumps(self.to_dict(), indent=2))
+        """OUT/summary.json, written as config.json and the poses are (`io.write_text_atomic`)."""
+        write_text_atomic(out / "summary.json", json.dumps(self.to_dict(), indent=2))
 
     def to_dict(self) -> dict:
         return {"frames": self.frames, "lost": self.lost, "relocalised": self.relocalised,
