@@ -18,6 +18,7 @@ from result_runs import result_runs
 from scipy.spatial.transform import Rotation
 
 from surgtrack.geometry import inv_T, make_T
+from surgtrack.io import Sequence
 from surgtrack.metrics import add_errors, align_first_frame, alignment_anchor, auc, model_points
 
 
@@ -25,6 +26,21 @@ def shaft_of(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The shaft of a model's points (object frame): their centroid and first principal axis."""
     centre = pts.mean(axis=0)
     return centre, np.linalg.svd(pts - centre, full_matrices=False)[2][0]
+
+
+def sequence_shaft(seq: Sequence) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A sequence's evaluation model points (object frame, as `surgtrack eval` scores them) and their shaft."""
+    pts = model_points(seq.gt_visible_points(), seq.gt_model())
+    return pts, *shaft_of(pts)
+
+
+def aligned_run(seq: Sequence, gt: dict[str, np.ndarray],
+                est: dict[str, np.ndarray]) -> tuple[list[str], dict[str, np.ndarray]]:
+    """The frame ids with ground truth and the tracked poses aligned at the first frame as `surgtrack eval` aligns
+    them."""
+    ids = [i for i in seq.ids if i in gt]
+    anchor = alignment_anchor(est, gt, ids)
+    return ids, align_first_frame(est, est[anchor], gt[anchor])
 
 
 def shaft_parts(E: np.ndarray, centre: np.ndarray, axis: np.ndarray) -> tuple[float, float, float]:
@@ -51,11 +67,8 @@ def without(E: np.ndarray, centre: np.ndarray, axis: np.ndarray, turn: bool, sli
 def main() -> None:
     totals = []
     for out, seq, gt, est in result_runs(__doc__.splitlines()[0], "ob_in_cam"):
-        ids = [i for i in seq.ids if i in gt]
-        anchor = alignment_anchor(est, gt, ids)
-        aligned = align_first_frame(est, est[anchor], gt[anchor])
-        pts = model_points(seq.gt_visible_points(), seq.gt_model())
-        centre, axis = shaft_of(pts)
+        ids, aligned = aligned_run(seq, gt, est)
+        pts, centre, axis = sequence_shaft(seq)
         turn, slide, rest = [], [], []
         for i in ids:
             if i in aligned:

@@ -17,11 +17,10 @@ import argparse
 from pathlib import Path
 
 import numpy as np
-from shaft_errors import shaft_of, shaft_parts
+from shaft_errors import aligned_run, sequence_shaft, shaft_parts
 
 from surgtrack.geometry import inv_T
 from surgtrack.io import open_sequence, read_poses
-from surgtrack.metrics import align_first_frame, alignment_anchor, model_points
 
 
 def main() -> None:
@@ -34,10 +33,8 @@ def main() -> None:
     a = ap.parse_args()
     seq = open_sequence(a.sequence)
     gt, est = seq.gt_poses(), read_poses(a.result / "ob_in_cam")
-    ids = [i for i in seq.ids if i in gt]
-    anchor = alignment_anchor(est, gt, ids)
-    tracked = align_first_frame(est, est[anchor], gt[anchor])
-    centre, axis = shaft_of(model_points(seq.gt_visible_points(), seq.gt_model()))
+    ids, tracked = aligned_run(seq, gt, est)
+    _, centre, axis = sequence_shaft(seq)
     last = len(ids) - 1 if a.last is None else min(a.last, len(ids) - 1)
     print(f"{'frame':>8} {'true turn':>10} {'tracked':>8} {'true slide':>11} {'tracked':>8}   "
           f"{'error: turn':>11} {'slide':>6} {'across':>7}")

@@ -16,11 +16,10 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from shaft_errors import shaft_of, shaft_parts
+from shaft_errors import sequence_shaft, shaft_parts
 
 from surgtrack.geometry import inv_T, rotation_angle_deg
 from surgtrack.io import open_sequence
-from surgtrack.metrics import model_points
 
 
 def main() -> None:
@@ -28,7 +27,7 @@ def main() -> None:
         seq = open_sequence(d)
         gt = seq.gt_poses()
         ids = [i for i in seq.ids if i in gt]
-        centre, axis = shaft_of(model_points(seq.gt_visible_points(), seq.gt_model()))
+        _, centre, axis = sequence_shaft(seq)
         turn, rot, slide = [], [], []
         for a, b in zip(ids[:-1], ids[1:], strict=True):
             M = inv_T(gt[a]) @ gt[b]
