@@ -131,6 +131,24 @@ def test_reading_is_lazy(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
         seq[3]
 
 
+def test_frames_read_ahead_come_in_order_and_a_bad_one_raises_at_its_turn(tmp_path: Path):
+    """`Sequence.read_ahead` (the tracking loop's reader) gives the frames seq[i] gives, in order; an unreadable
+    frame raises its one-line error only once the frames before it have been handed over."""
+    root = make_sequence(tmp_path / "s", n=6)
+    seq = open_sequence(root)
+    frames = list(seq.read_ahead(1))
+    assert [f.id for f in frames] == seq.ids[1:]
+    for i, f in enumerate(frames, start=1):
+        assert np.array_equal(f.rgb, seq[i].rgb) and np.array_equal(f.depth, seq[i].depth)
+    (root / "rgb" / "000004.png").write_bytes(b"broken")
+    got = []
+    with raises(root / "rgb" / "000004.png", "unreadable image"):
+        for f in seq.read_ahead(0):
+            got.append(f.id)
+    assert got == seq.ids[:4]
+    assert [f.id for _, f in zip(range(2), seq.read_ahead(0), strict=False)] == seq.ids[:2]  # stopping early
+
+
 # ------------------------------------------------------------------------------------------------ bad input
 
 

@@ -98,6 +98,23 @@ def test_tracks_a_synthetic_sequence_within_stated_error(synth_seq, tmp_path):
     assert m["add_auc"] >= 70, m["add_auc"]
 
 
+def test_a_broken_frame_stops_the_run_with_its_name_and_keeps_the_poses_before(synth_seq, tmp_path):
+    """The frames are read ahead while earlier ones are tracked (`Sequence.read_ahead`): an unreadable frame still
+    stops the run at that frame, with an error naming its file, and the poses of the frames before it stay written."""
+    import shutil
+
+    from surgtrack.io import SequenceError
+
+    root = tmp_path / "seq"
+    shutil.copytree(synth_seq, root)
+    (root / "depth" / "000012.png").write_bytes(b"not a png")
+    cfg = TrackerConfig()
+    cfg.sdf = replace(cfg.sdf, enabled=False)
+    with pytest.raises(SequenceError, match=rf"^{root / 'depth' / '000012.png'}: unreadable image"):
+        track_sequence(open_sequence(root), tmp_path / "out", cfg)
+    assert sorted(read_poses(tmp_path / "out" / "ob_in_cam")) == [f"{i:06d}" for i in range(12)]
+
+
 def test_no_graph_ablation_uses_ransac_only(synth_seq, tmp_path):
     seq = open_sequence(synth_seq)
     cfg = TrackerConfig()

@@ -13,7 +13,9 @@ import hashlib
 import json
 import os
 import re
+from collections import deque
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -127,6 +129,24 @@ class Sequence:
     def __iter__(self) -> Iterator[Frame]:
         for i in range(len(self)):
             yield self[i]
+
+    def read_ahead(self, start: int = 0, ahead: int = 2) -> Iterator[Frame]:
+        """The frames from ``start`` on, in order, each read and decoded in a background thread while the caller
+        works on the ones before (up to ``ahead`` frames early). Image decoding releases the GIL, so a tracker on
+        the main thread does not wait for files. An unreadable frame raises its SequenceError when its turn comes."""
+        with ThreadPoolExecutor(1, thread_name_prefix="frame-reader") as reader:
+            pending = deque(reader.submit(self.__getitem__, i) for i in range(start, min(start + ahead, len(self))))
+            following = start + len(pending)
+            try:
+                while pending:
+                    frame = pending.popleft().result()
+                    if following < len(self):
+                        pending.append(reader.submit(self.__getitem__, following))
+                        following += 1
+                    yield frame
+            finally:
+                for future in pending:  # the caller stopped early: read no further
+                    future.cancel()
 
     def _read(self, i: int) -> Frame:
         raise NotImplementedError

@@ -101,8 +101,7 @@ def track_sequence(
         summary.add(0, registered)
         if on_frame is not None:
             on_frame(first, registered)
-        for i in range(1, len(seq)):
-            frame = seq[i]
+        for i, frame in enumerate(seq.read_ahead(1), start=1):
             result = tracker.track(frame, None if first_mask_only else frame.mask)
             writer.write(frame.id, result.pose, frame_record(result))
             summary.add(i, result)
