@@ -17,7 +17,7 @@ import numpy as np
 
 from .baselines import BaselineTracker, FrameToFrameICPTracker, KinectFusionTracker, RansacOnlyTracker
 from .config import TrackerConfig
-from .io import open_sequence, sequence_digest
+from .io import open_sequence, sequence_digest, write_text_atomic
 from .metrics import evaluate
 from .pipeline import track_sequence
 from .plots import plot_accuracy, plot_errors_over_time
@@ -90,8 +90,8 @@ def run_bench(suite: str, methods: list[str], root: Path | str, short: bool = Fa
         plot_accuracy({k: v["ADD"] for k, v in errors.items()}, root / "accuracy_add.png", "ADD"),
         plot_accuracy({k: v["ADD-S"] for k, v in errors.items()}, root / "accuracy_add_s.png", "ADD-S"),
         plot_errors_over_time(first_seq, root / f"errors_over_time_{specs[0][0]}.png", "ADD"))]
-    (root / "bench.json").write_text(json.dumps(results, indent=2))
-    (root / "bench.md").write_text(format_table(results))
+    write_text_atomic(root / "bench.json", json.dumps(results, indent=2))
+    write_text_atomic(root / "bench.md", format_table(results))
     return results
 
 

@@ -125,13 +125,13 @@ def eval_cmd(
     from rich.console import Console
     from rich.table import Table
 
-    from .io import open_sequence
+    from .io import open_sequence, write_text_atomic
     from .metrics import WRONG_ERR, evaluate
 
     if not depth_scale > 0:
         fail(f"--depth-scale must be positive, got {depth_scale}")
     result = evaluate(out, open_sequence(seq, depth_scale=depth_scale, obj_id=obj_id))
-    (out / "metrics.json").write_text(json.dumps(result, indent=1) + "\n")
+    write_text_atomic(out / "metrics.json", json.dumps(result, indent=1) + "\n")
     table = Table(title=f"{out.name} vs {seq.name}")
     table.add_column("metric")
     table.add_column("value", justify="right")

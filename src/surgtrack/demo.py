@@ -12,7 +12,7 @@ import open3d as o3d
 import trimesh
 
 from .config import TrackerConfig
-from .io import Frame, open_sequence, read_poses
+from .io import Frame, open_sequence, read_poses, write_text_atomic
 from .metrics import evaluate
 from .overlay import OverlayVideo, draw_overlay
 from .pipeline import track_sequence
@@ -54,10 +54,10 @@ def run_demo(out: Path | str, spec: SynthSpec = DEMO_SPEC, first_mask_only: bool
         video.close()
     _mesh_comparison(out, seq)
     metrics = evaluate(out / "result", seq)
-    (out / "result" / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    write_text_atomic(out / "result" / "metrics.json", json.dumps(metrics, indent=2))
     plots = plot_evaluation(metrics, out)
     report = _report(spec, summary.to_dict(), metrics, plots, still_paths, out, first_mask_only)
-    (out / "report.md").write_text(report)
+    write_text_atomic(out / "report.md", report)
     return {"summary": summary.to_dict(), "metrics": metrics, "report": out / "report.md"}
 
 

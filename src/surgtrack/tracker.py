@@ -284,7 +284,7 @@ class SurgTracker:
         confidence = self._confidence(node)
         if confidence < self.cfg.failure.min_confidence:
             return self._lose(clock, confidence)
-        if (mask is None or self.cfg.failure.seen_past_given) and self._sees_past(frame, pose):
+        if self._sees_past(obs, pose):
             return self._lose(clock, confidence)
         status = RELOCALISED if self.lost else TRACKED
         if mask is None and status == TRACKED:
@@ -763,15 +763,21 @@ class SurgTracker:
             mask = within_reach(mask, frame.depth, frame.K, pose, self._axis, pre.predicted_mask_across)
         return mask
 
-    def _sees_past(self, frame: Frame, pose: np.ndarray) -> bool:
-        """True when the frame has seen past more than ``failure.max_seen_past`` of the model's silhouette
-        (`masking.seen_past`) on ``failure.seen_past_frames`` frames in a row: the pose is on something else."""
+    def _seen_past_now(self, obs: Observation, pose: np.ndarray) -> bool:
+        """Whether this frame has seen past more than ``failure.max_seen_past`` of the model's silhouette at
+        ``pose`` (`masking.seen_past`). Frames that came with their mask are checked only with
+        ``failure.seen_past_given``."""
         f = self.cfg.failure
-        if f.max_seen_past >= 1.0 or self.model_points is None:
+        if f.max_seen_past >= 1.0 or self.model_points is None or (obs.mask_given and not f.seen_past_given):
             return False
-        s = seen_past(self.model_points, pose, frame.K, frame.depth, self.cfg.graph.free_space_tol)
-        self._seen_past_run = self._seen_past_run + 1 if s > f.max_seen_past else 0
-        return self._seen_past_run >= f.seen_past_frames
+        s = seen_past(self.model_points, pose, obs.K, obs.frame.depth, self.cfg.graph.free_space_tol)
+        return s > f.max_seen_past
+
+    def _sees_past(self, obs: Observation, pose: np.ndarray) -> bool:
+        """True when the frame has seen past the model at ``pose`` (`_seen_past_now`) on
+        ``failure.seen_past_frames`` frames in a row: the pose is on something else."""
+        self._seen_past_run = self._seen_past_run + 1 if self._seen_past_now(obs, pose) else 0
+        return self._seen_past_run >= self.cfg.failure.seen_past_frames
 
     def _lose(self, clock: _Clock, confidence: float = 0.0) -> TrackResult:
         self.lost = True
