@@ -510,19 +510,15 @@ class SurgTracker:
         not yet scored. None when its origin moved further than the physical bound allows over the frames since
         ``last`` (a look-alike elsewhere in the image), or when its median point lies further than
         ``failure.relocalise_max_fit`` from the model (median: parts of the instrument the model has not seen yet do
-        not count against it), or when the frame sees past more than ``failure.max_seen_past`` of the model's
-        silhouette at it (`masking.seen_past`, the loss check of `_sees_past` on this one frame): a wrong pose taken
-        here would be tracked on, and its keyframes would spoil the model."""
+        not count against it): a wrong pose taken here would be tracked on, and its keyframes would spoil the
+        model."""
         node = self._node(obs, feats, orthonormalize(pose))
         node.pose = orthonormalize(self._optimise(node, list(edges), candidate=True, obs=obs))
         motion = inv_T(last) @ node.pose
         if np.linalg.norm(motion[:3, 3]) > self._reach(obs.frame.index):
             return None
-        f = self.cfg.failure
         dist = self._model_distances(node)
-        if not np.median(dist) <= f.relocalise_max_fit:  # the model does not lie on the frame
-            return None
-        if self._seen_past_now(obs, node.pose):
+        if not np.median(dist) <= self.cfg.failure.relocalise_max_fit:  # the model does not lie on the frame
             return None
         move = np.linalg.norm(motion[:3, 3]) + 0.1 * np.radians(rotation_angle_deg(motion[:3, :3]))
         return _Candidate(node, self._fit_error(dist), None, move)
