@@ -763,21 +763,16 @@ class SurgTracker:
             mask = within_reach(mask, frame.depth, frame.K, pose, self._axis, pre.predicted_mask_across)
         return mask
 
-    def _seen_past_now(self, obs: Observation, pose: np.ndarray) -> bool:
-        """Whether this frame has seen past more than ``failure.max_seen_past`` of the model's silhouette at
-        ``pose`` (`masking.seen_past`). Frames that came with their mask are checked only with
-        ``failure.seen_past_given``."""
-        f = self.cfg.failure
-        if f.max_seen_past >= 1.0 or self.model_points is None or (obs.mask_given and not f.seen_past_given):
-            return False
-        s = seen_past(self.model_points, pose, obs.K, obs.frame.depth, self.cfg.graph.free_space_tol)
-        return s > f.max_seen_past
-
     def _sees_past(self, obs: Observation, pose: np.ndarray) -> bool:
-        """True when the frame has seen past the model at ``pose`` (`_seen_past_now`) on
-        ``failure.seen_past_frames`` frames in a row: the pose is on something else."""
-        self._seen_past_run = self._seen_past_run + 1 if self._seen_past_now(obs, pose) else 0
-        return self._seen_past_run >= self.cfg.failure.seen_past_frames
+        """True when the frame has seen past more than ``failure.max_seen_past`` of the model's silhouette at
+        ``pose`` (`masking.seen_past`) on ``failure.seen_past_frames`` frames in a row: the pose is on something
+        else. Frames that came with their mask are checked only with ``failure.seen_past_given``."""
+        f = self.cfg.failure
+        checked = f.max_seen_past < 1.0 and self.model_points is not None and (f.seen_past_given or not obs.mask_given)
+        seen = checked and seen_past(self.model_points, pose, obs.K, obs.frame.depth,
+                                     self.cfg.graph.free_space_tol) > f.max_seen_past
+        self._seen_past_run = self._seen_past_run + 1 if seen else 0
+        return self._seen_past_run >= f.seen_past_frames
 
     def _lose(self, clock: _Clock, confidence: float = 0.0) -> TrackResult:
         self.lost = True
