@@ -115,32 +115,6 @@ def test_a_broken_frame_stops_the_run_with_its_name_and_keeps_the_poses_before(s
     assert sorted(read_poses(tmp_path / "out" / "ob_in_cam")) == [f"{i:06d}" for i in range(12)]
 
 
-def test_frames_with_their_mask_match_with_the_stricter_ratio_test(synth_seq, monkeypatch):
-    """A frame that came with its mask matches its features with ``ransac.ratio_test_given``, one without with
-    ``ransac.ratio_test`` (more matches there keep the predicted mask on the instrument): every match call of the
-    frame, the memory keyframes' in the posture graph included."""
-    import surgtrack.tracker
-
-    seq = open_sequence(synth_seq)
-    cfg = TrackerConfig()
-    cfg.sdf.enabled = False
-    cfg.ransac.ratio_test, cfg.ransac.ratio_test_given = 0.85, 0.65
-    ratios: list[float] = []
-    original = surgtrack.tracker.match
-
-    def recorded(a, b, norm, ratio):
-        ratios.append(ratio)
-        return original(a, b, norm, ratio)
-
-    monkeypatch.setattr(surgtrack.tracker, "match", recorded)
-    tracker = SurgTracker(cfg)
-    tracker.register(seq[0], seq[0].mask)
-    for i, given in ((1, True), (2, False), (3, True), (4, False)):
-        ratios.clear()
-        assert tracker.track(seq[i], seq[i].mask if given else None).status != LOST
-        assert ratios and set(ratios) == {0.65 if given else 0.85}
-
-
 def test_no_graph_ablation_uses_ransac_only(synth_seq, tmp_path):
     seq = open_sequence(synth_seq)
     cfg = TrackerConfig()

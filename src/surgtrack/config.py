@@ -42,8 +42,7 @@ class RansacConfig:
 
     features: str = "sift"  # sift | orb | xfeat
     max_keypoints: int = 800
-    ratio_test: float = 0.8  # Lowe ratio for descriptor matching on frames without a given mask
-    ratio_test_given: float = 0.7  # on frames that came with their mask (the first frame's included)
+    ratio_test: float = 0.8  # Lowe ratio for descriptor matching
     hypotheses: int = 2000  # random 3-point samples; every triple instead when there are no more than this
     inlier_dist: float = 0.01  # m
     inlier_normal_deg: float = 20.0

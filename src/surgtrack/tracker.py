@@ -181,7 +181,6 @@ class SurgTracker:
         self.lost = False
         self.frames_lost = 0
         self._seen_past_run = 0  # frames in a row that saw past the model (_sees_past)
-        self._ratio = self.cfg.ransac.ratio_test_given  # Lowe ratio of this frame's matching (_matches)
         self.sdf: InstrumentSDF | None = None  # the converged field the posture graph uses (L_SDF, eq. 11)
         self.fitter: BackgroundFitter | None = None
         self._field: InstrumentSDF | None = None  # the field refitted in line when there is no background fitter
@@ -205,7 +204,6 @@ class SurgTracker:
 
     def register(self, frame: Frame, mask: np.ndarray) -> np.ndarray:
         """Start tracking on the first frame and its instrument mask; returns the first pose."""
-        self._ratio = self.cfg.ransac.ratio_test_given
         obs = preprocess(frame, mask, self.cfg.preprocess)
         self.colour.learn(frame.rgb, mask)
         if obs.n_valid < self.cfg.failure.min_pixels:
@@ -273,7 +271,6 @@ class SurgTracker:
         clock = _Clock()
         if self.lost and not self._relocalisation_due():
             return self._lose(clock)
-        self._ratio = self.cfg.ransac.ratio_test if mask is None else self.cfg.ransac.ratio_test_given
         self._update_sdf()
         colour = self._colour()
         if mask is None and self.lost and colour is not None:
@@ -396,10 +393,8 @@ class SurgTracker:
                  pose: np.ndarray | None = None) -> tuple[np.ndarray | None, np.ndarray, np.ndarray] | None:
         """Feature correspondences with a reference frame as (T_ref_to_cur, ref points, current points): RANSAC
         inliers (eq. 5), or, when RANSAC finds none and a pose estimate is given, the matches that agree with it
-        (within twice the RANSAC threshold; T is then None). The ratio test is ``ransac.ratio_test_given`` on a
-        frame that came with its mask, whose keypoints all lie on the instrument, and the looser
-        ``ransac.ratio_test`` on one without: there more matches keep the predicted mask on the instrument."""
-        ia, ib = match(ref.features, feats, self.extractor.norm, self._ratio)
+        (within twice the RANSAC threshold; T is then None)."""
+        ia, ib = match(ref.features, feats, self.extractor.norm, self.cfg.ransac.ratio_test)
         if len(ia) < self.cfg.ransac.min_inliers:
             return None
         src, dst = ref.features.subset(ia), feats.subset(ib)
