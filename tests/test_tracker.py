@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 from dataclasses import replace
 
 import numpy as np
@@ -12,7 +13,7 @@ from helpers import tracked
 
 from surgtrack.config import TrackerConfig
 from surgtrack.geometry import backproject, depth_to_xyz, make_T, transform
-from surgtrack.io import open_sequence, read_poses
+from surgtrack.io import SequenceError, open_sequence, read_poses
 from surgtrack.metrics import evaluate
 from surgtrack.pipeline import RunSummary, track_sequence
 from surgtrack.tracker import LOST, RELOCALISED, TRACKED, SurgTracker, TrackResult, object_origin, shaft_range
@@ -101,10 +102,6 @@ def test_tracks_a_synthetic_sequence_within_stated_error(synth_seq, tmp_path):
 def test_a_broken_frame_stops_the_run_with_its_name_and_keeps_the_poses_before(synth_seq, tmp_path):
     """The frames are read ahead while earlier ones are tracked (`Sequence.read_ahead`): an unreadable frame still
     stops the run at that frame, with an error naming its file, and the poses of the frames before it stay written."""
-    import shutil
-
-    from surgtrack.io import SequenceError
-
     root = tmp_path / "seq"
     shutil.copytree(synth_seq, root)
     (root / "depth" / "000012.png").write_bytes(b"not a png")

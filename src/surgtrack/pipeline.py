@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable
+from contextlib import closing
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -88,7 +89,8 @@ def track_sequence(
     tracker = tracker or SurgTracker(config)
     out = Path(out)
     summary = RunSummary()
-    with ResultWriter(out, config.to_dict()) as writer:
+    # closing: a run that stops on an error stops its frame reader too, not when the generator is collected
+    with ResultWriter(out, config.to_dict()) as writer, closing(seq.read_ahead(1)) as frames:
         t0 = time.perf_counter()
         first = seq[0]
         assert first.mask is not None  # the readers guarantee a first-frame mask
@@ -101,7 +103,7 @@ def track_sequence(
         summary.add(0, registered)
         if on_frame is not None:
             on_frame(first, registered)
-        for i, frame in enumerate(seq.read_ahead(1), start=1):
+        for i, frame in enumerate(frames, start=1):
             result = tracker.track(frame, None if first_mask_only else frame.mask)
             writer.write(frame.id, result.pose, frame_record(result))
             summary.add(i, result)
