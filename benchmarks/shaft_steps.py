@@ -34,7 +34,7 @@ def main() -> None:
     seq = open_sequence(a.sequence)
     gt, est = seq.gt_poses(), read_poses(a.result / "ob_in_cam")
     ids, tracked = aligned_run(seq, gt, est)
-    _, centre, axis = sequence_shaft(seq)
+    _, centre, axis, _ = sequence_shaft(seq)
     last = len(ids) - 1 if a.last is None else min(a.last, len(ids) - 1)
     print(f"{'frame':>8} {'true turn':>10} {'tracked':>8} {'true slide':>11} {'tracked':>8}   "
           f"{'error: turn':>11} {'slide':>6} {'across':>7}")

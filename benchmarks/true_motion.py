@@ -27,7 +27,7 @@ def main() -> None:
         seq = open_sequence(d)
         gt = seq.gt_poses()
         ids = [i for i in seq.ids if i in gt]
-        _, centre, axis = sequence_shaft(seq)
+        _, centre, axis, _ = sequence_shaft(seq)
         turn, rot, slide = [], [], []
         for a, b in zip(ids[:-1], ids[1:], strict=True):
             M = inv_T(gt[a]) @ gt[b]
