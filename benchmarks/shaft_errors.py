@@ -7,8 +7,8 @@ sequences of the same names, e.g. ``bench_out/data``. The poses are aligned at t
 aligns them; the shaft is the first principal axis of the evaluation's model points (the surface the video shows).
 For each frame, E = gt^-1 pose maps the model as tracked onto the model as it is: the turn is the twist of E's
 rotation about the shaft, the slide the part of the points' centroid displacement along it. Printed: the median and
-the 90th percentile over the frames, and the ADD AUC (lost frames counted as `surgtrack eval` counts them) as
-tracked, with the turn taken out of every pose, with the slide taken out, and with both: what each costs.
+the 90th percentile over the frames, and the ADD and ADD-S AUC (lost frames counted as `surgtrack eval` counts them)
+as tracked, with the turn taken out of every pose, with the slide taken out, and with both: what each costs.
 
 A sequence rendered by `surgtrack synth` names its instrument in synth.json; its shaft is then the instrument's own
 axis line (through the tip), not the principal axis through the centroid. The two differ where the model carries
@@ -26,7 +26,7 @@ from scipy.spatial.transform import Rotation
 
 from surgtrack.geometry import inv_T, make_T
 from surgtrack.io import Sequence
-from surgtrack.metrics import add_errors, align_first_frame, alignment_anchor, auc, model_points
+from surgtrack.metrics import add_errors, adds_errors, align_first_frame, alignment_anchor, auc, model_points
 from surgtrack.synth.instruments import load_instrument
 
 
@@ -98,15 +98,19 @@ def main() -> None:
             return f"{np.median(x):5.1f} / {np.percentile(x, 90):5.1f}"
 
         G = [gt[i] for i in ids]
-        aucs = [auc(add_errors([None if i not in aligned else gt[i] @ without(inv_T(gt[i]) @ aligned[i], centre,
-                                                                               axis, on_line, t, s) for i in ids],
-                                  G, pts))
-                for t, s in ((False, False), (True, False), (False, True), (True, True))]
+        aucs = []
+        for errors in (add_errors, adds_errors):
+            for t, s in ((False, False), (True, False), (False, True), (True, True)):
+                poses = [None if i not in aligned else gt[i] @ without(inv_T(gt[i]) @ aligned[i], centre, axis,
+                                                                       on_line, t, s) for i in ids]
+                aucs.append(auc(errors(poses, G, pts)))
         totals.append(aucs)
+        add, add_s = (" / ".join(f"{a:5.2f}" for a in part) for part in (aucs[:4], aucs[4:]))
         print(f"{out.name:18} turn {stat(turn)} deg   slide {stat(slide)} cm   across {stat(rest)} cm   "
-              f"ADD AUC {' / '.join(f'{a:5.2f}' for a in aucs)}")
-    print(f"{'mean':18} ADD AUC as tracked / without the turn / without the slide / without both: "
-          f"{' / '.join(f'{a:5.2f}' for a in np.mean(totals, axis=0))}")
+              f"ADD AUC {add}   ADD-S AUC {add_s}")
+    mean = np.mean(totals, axis=0)
+    print(f"{'mean':18} AUC as tracked / without the turn / without the slide / without both: "
+          f"ADD {' / '.join(f'{a:5.2f}' for a in mean[:4])}, ADD-S {' / '.join(f'{a:5.2f}' for a in mean[4:])}")
 
 
 if __name__ == "__main__":
