@@ -4,11 +4,12 @@
 
 RESULTS holds one result folder a sequence (OUT/ob_in_cam/), e.g. ``bench_out/surgtrack``; DATA the rendered
 sequences of the same names, e.g. ``bench_out/data``. The poses are aligned at the first frame as `surgtrack eval`
-aligns them; the shaft is the first principal axis of the evaluation's model points (the surface the video shows).
-For each frame, E = gt^-1 pose maps the model as tracked onto the model as it is: the turn is the twist of E's
-rotation about the shaft, the slide the part of the points' centroid displacement along it. Printed: the median and
-the 90th percentile over the frames, and the ADD and ADD-S AUC (lost frames counted as `surgtrack eval` counts them)
-as tracked, with the turn taken out of every pose, with the slide taken out, and with both: what each costs.
+aligns them; the shaft is the rendered instrument's own axis line (below), else the first principal axis of the
+evaluation's model points (the surface the video shows) through their centroid. For each frame, E = gt^-1 pose maps
+the model as tracked onto the model as it is: the turn is the twist of E's rotation about the shaft, the slide the
+part of the points' centroid displacement along it. Printed: the median and the 90th percentile over the frames, and
+the ADD and ADD-S AUC (lost frames counted as `surgtrack eval` counts them) as tracked, with the turn taken out of
+every pose, with the slide taken out, and with both: what each costs.
 
 A sequence rendered by `surgtrack synth` names its instrument in synth.json; its shaft is then the instrument's own
 axis line (through the tip), not the principal axis through the centroid. The two differ where the model carries

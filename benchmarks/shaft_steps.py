@@ -3,12 +3,12 @@
     .venv/bin/python benchmarks/shaft_steps.py RESULT SEQUENCE [--first F] [--last L] [--every N]
 
 RESULT is one result folder (RESULT/ob_in_cam/), SEQUENCE the rendered sequence it tracked. The tracked poses are
-aligned at the first frame as `surgtrack eval` aligns them, and the shaft is `shaft_errors.py`'s (first principal
-axis of the evaluation's model points). For each step of N frames from F to L: the turn about the shaft (degrees)
-and the slide along it (cm) of the true motion gt_i^-1 gt_j and of the tracked motion, then the error's turn, slide
-and shift across the shaft at frame j. Where `shaft_errors.py` says what the turn and the slide cost a run, this
-says at which frames they came in; a step that is tracked much larger than it truly was, then carried on for a few
-frames, is the constant-velocity prediction carrying a wrong step.
+aligned at the first frame as `surgtrack eval` aligns them, and the shaft is `shaft_errors.py`'s (the rendered
+instrument's own axis, else the first principal axis of the evaluation's model points). For each step of N frames
+from F to L: the turn about the shaft (degrees) and the slide along it (cm) of the true motion gt_i^-1 gt_j and of
+the tracked motion, then the error's turn, slide and shift across the shaft at frame j. Where `shaft_errors.py` says
+what the turn and the slide cost a run, this says at which frames they came in; a step that is tracked much larger
+than it truly was, then carried on for a few frames, is the constant-velocity prediction carrying a wrong step.
 """
 
 from __future__ import annotations

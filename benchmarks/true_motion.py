@@ -3,8 +3,8 @@
     .venv/bin/python benchmarks/true_motion.py DATA
 
 DATA holds rendered sequences with ground truth, e.g. ``runs/full/data``. For each pair of consecutive frames the
-true motion M = gt_i^-1 gt_(i+1) (object frame) is split about the shaft of the evaluation's model points as
-`shaft_errors.py` splits an error: its turn about the shaft, the slide of the points' centroid along it, and the
+true motion M = gt_i^-1 gt_(i+1) (object frame) is split about the shaft `shaft_errors.py` uses, as it splits an
+error: its turn about the shaft, the slide of the points' centroid along it, and the
 whole rotation. Printed per sequence: the median, 95th percentile and largest turn (degrees a frame), the largest
 rotation, and the 95th percentile and largest slide (mm a frame). A bound on the motion a tracker predicts or allows
 should sit above these.
