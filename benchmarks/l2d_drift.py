@@ -6,8 +6,9 @@ SEQ is a rendered sequence (ground-truth poses). The frame and the frames ``--re
 fixed) enter the posture graph at their true poses, with the sequence's per-frame masks and the default
 preprocessing; only L_2D acts (w_f, w_fs and the motion prior w_m at 0). After 1, 3, 7 (the default), 15 and 30
 Gauss-Newton iterations the frame's error is printed (`shaft_errors.shaft_parts`): its rotation, the twist of that
-rotation about the shaft (the first principal axis of the evaluation's model points), and the shift of the points'
-centroid along the shaft and across it. A well-posed energy would leave the true pose where it is.
+rotation about the shaft (`shaft_errors.sequence_shaft`: the rendered instrument's own axis, else the first
+principal axis of the evaluation's model points), and the shift of the points' centroid along the shaft and across
+it. A well-posed energy would leave the true pose where it is.
 """
 
 from __future__ import annotations
@@ -16,12 +17,11 @@ import argparse
 from dataclasses import replace
 
 import numpy as np
-from shaft_errors import shaft_of, shaft_parts
+from shaft_errors import sequence_shaft, shaft_parts
 
 from surgtrack.config import TrackerConfig
 from surgtrack.geometry import inv_T, rotation_angle_deg
 from surgtrack.io import open_sequence
-from surgtrack.metrics import model_points
 from surgtrack.posture_graph import GraphNode, GridPoints, optimize_graph
 from surgtrack.preprocess import preprocess
 
@@ -34,8 +34,7 @@ def main() -> None:
     args = ap.parse_args()
     seq, cfg = open_sequence(args.seq), TrackerConfig()
     gt = seq.gt_poses()
-    pts = model_points(seq.gt_visible_points(), seq.gt_model())
-    centre, axis = shaft_of(pts)
+    _, centre, axis, _ = sequence_shaft(seq)
 
     def node(k: int, fixed: bool) -> GraphNode:
         f = seq[k]
