@@ -18,18 +18,19 @@ Oracle figures: the true pose, the true mask and the true marking geometry, none
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import cv2
 import numpy as np
 import trimesh
+from shaft_errors import rendered_instrument, turn_about
 
-from surgtrack.geometry import make_T, project, so3_exp, transform
+from surgtrack.geometry import project, transform
 from surgtrack.io import Frame, open_sequence
-from surgtrack.synth.instruments import Instrument, load_instrument
+from surgtrack.synth.instruments import Instrument
 
-TURNS = np.arange(-60, 61, 5)  # degrees
+TURNS = np.radians(np.arange(-60, 61, 5))
+TRUTH = len(TURNS) // 2  # the index of no turn
 KEEP = 0.9  # share of the truth's contrast within which a turn counts as not told apart
 
 
@@ -43,14 +44,18 @@ def marking_points(inst: Instrument, n: int = 300_000) -> tuple[np.ndarray, np.n
     return pts[mark], pts[marked_material & ~mark]
 
 
+def off_axis(inst: Instrument, pts: np.ndarray) -> np.ndarray:
+    """Each point's direction away from the instrument's axis (object frame): the way a shaft's surface faces."""
+    d = pts - inst.tip
+    return d - np.outer(d @ inst.axis, inst.axis)
+
+
 def grey_under(frame: Frame, grey: np.ndarray, pose: np.ndarray, pts: np.ndarray,
-               inst: Instrument) -> tuple[float, int]:
-    """Mean grey level under the points (object frame) that face the camera at ``pose`` and land on the true mask
-    at their own depth, and how many do."""
+               radial: np.ndarray) -> tuple[float, int]:
+    """Mean grey level under the points (object frame, facing ``radial``) that face the camera at ``pose`` and land
+    on the true mask at their own depth, and how many do."""
     cam = transform(pose, pts)
     uv, z = project(cam, frame.K)
-    d = pts - inst.tip
-    radial = d - np.outer(d @ inst.axis, inst.axis)
     facing = np.einsum("ij,ij->i", radial @ pose[:3, :3].T, -cam) > 0
     u, v = np.round(uv[:, 0]).astype(int), np.round(uv[:, 1]).astype(int)
     h, w = grey.shape
@@ -61,16 +66,15 @@ def grey_under(frame: Frame, grey: np.ndarray, pose: np.ndarray, pts: np.ndarray
 
 
 def untold_range(contrast: np.ndarray) -> tuple[float, bool]:
-    """The contiguous turn range about 0 where the contrast stays within KEEP of the truth's, and whether it
-    reaches an end of the search."""
-    c0 = contrast[len(TURNS) // 2]
-    near = np.sign(c0) * contrast >= KEEP * abs(c0)
-    lo = hi = len(TURNS) // 2
+    """The contiguous turn range (degrees) about the truth where the contrast stays within KEEP of the truth's, and
+    whether it reaches an end of the search."""
+    near = np.sign(contrast[TRUTH]) * contrast >= KEEP * abs(contrast[TRUTH])
+    lo = hi = TRUTH
     while lo > 0 and near[lo - 1]:
         lo -= 1
     while hi < len(TURNS) - 1 and near[hi + 1]:
         hi += 1
-    return float(TURNS[hi] - TURNS[lo]), lo == 0 or hi == len(TURNS) - 1
+    return float(np.degrees(TURNS[hi] - TURNS[lo])), lo == 0 or hi == len(TURNS) - 1
 
 
 def main() -> None:
@@ -81,30 +85,26 @@ def main() -> None:
     print("| sequence | frames with markings in view | median turn range not told apart, degrees | "
           "range open on a side |")
     print("|---|---|---|---|")
-    for root in sorted(p for p in a.data.iterdir() if (p / "synth.json").exists()):
-        try:
-            inst = load_instrument(json.loads((root / "synth.json").read_text())["spec"]["instrument"])
-        except (KeyError, ValueError, OSError):
+    for root in sorted(a.data.iterdir()):
+        inst = rendered_instrument(root)
+        if inst is None:
             continue
-        inst.axis = inst.axis / np.linalg.norm(inst.axis)
-        marks, plain = marking_points(inst)
+        sets = [(pts, off_axis(inst, pts)) for pts in marking_points(inst)]  # marked, then unmarked
+        turns = [turn_about(inst.axis, inst.tip, t) for t in TURNS]
         seq = open_sequence(root)
         gt = seq.gt_poses()
-        turns = [make_T(R, inst.tip - R @ inst.tip) for R in (so3_exp(np.radians(t) * inst.axis) for t in TURNS)]
         ranges, open_sided = [], 0
         for i in range(0, len(seq), a.every):
             frame = seq[i]
             if frame.mask is None or frame.id not in gt:
                 continue
             grey = cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY).astype(np.float32)
-            contrast, seen = [], 0
-            for k, T in enumerate(turns):
-                (m, n), (p, _) = (grey_under(frame, grey, gt[frame.id] @ T, pts, inst) for pts in (marks, plain))
-                contrast.append(m - p)
-                seen = n if k == len(TURNS) // 2 else seen
-            if seen < 20 or not np.isfinite(contrast[len(TURNS) // 2]):
+            marked, plain = ([grey_under(frame, grey, gt[frame.id] @ T, pts, radial) for T in turns]
+                             for pts, radial in sets)
+            contrast = np.array([m - p for (m, _), (p, _) in zip(marked, plain, strict=True)])
+            if marked[TRUTH][1] < 20 or not np.isfinite(contrast[TRUTH]):
                 continue
-            width, reaches_end = untold_range(np.nan_to_num(np.array(contrast), nan=0.0))
+            width, reaches_end = untold_range(np.nan_to_num(contrast, nan=0.0))
             ranges.append(width)
             open_sided += reaches_end
         n = len(ranges)

@@ -20,15 +20,16 @@ behind, and what the turn costs is then underestimated.
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 from result_runs import result_runs
 from scipy.spatial.transform import Rotation
 
-from surgtrack.geometry import inv_T, make_T
+from surgtrack.geometry import inv_T, make_T, so3_exp
 from surgtrack.io import Sequence
 from surgtrack.metrics import add_errors, adds_errors, align_first_frame, alignment_anchor, auc, model_points
-from surgtrack.synth.instruments import load_instrument
+from surgtrack.synth.instruments import Instrument, load_instrument
 
 
 def shaft_of(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -37,17 +38,31 @@ def shaft_of(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return centre, np.linalg.svd(pts - centre, full_matrices=False)[2][0]
 
 
+def rendered_instrument(root: Path) -> Instrument | None:
+    """The instrument a sequence folder's synth.json names (object frame = the ground truth's), or None when the
+    folder was not rendered by `surgtrack synth` or the instrument's mesh is not at hand."""
+    try:
+        return load_instrument(json.loads((root / "synth.json").read_text())["spec"]["instrument"])
+    except (OSError, KeyError, ValueError):
+        return None
+
+
+def turn_about(axis: np.ndarray, on_line: np.ndarray, angle: float) -> np.ndarray:
+    """4x4 turn by ``angle`` (radians) about the line through ``on_line`` along the unit ``axis``."""
+    R = so3_exp(angle * axis)
+    return make_T(R, on_line - R @ on_line)
+
+
 def sequence_shaft(seq: Sequence) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """A sequence's evaluation model points (object frame, as `surgtrack eval` scores them), their centroid, the
     shaft's direction and a point on its line: the rendered instrument's own axis and tip when synth.json names
     one, else the points' first principal axis through their centroid."""
     pts = model_points(seq.gt_visible_points(), seq.gt_model())
     centre, axis = shaft_of(pts)
-    try:
-        instrument = load_instrument(json.loads((seq.root / "synth.json").read_text())["spec"]["instrument"])
-    except (OSError, KeyError, ValueError):  # not rendered here, or its mesh is not at hand
+    instrument = rendered_instrument(seq.root)
+    if instrument is None:
         return pts, centre, axis, centre
-    return pts, centre, instrument.axis / np.linalg.norm(instrument.axis), instrument.tip
+    return pts, centre, instrument.axis, instrument.tip
 
 
 def aligned_run(seq: Sequence, gt: dict[str, np.ndarray],
@@ -74,8 +89,7 @@ def without(E: np.ndarray, centre: np.ndarray, axis: np.ndarray, on_line: np.nda
     """The error E with its twist about the shaft (the axis line through ``on_line``) and/or its slide along it (of
     ``centre``) removed."""
     if turn:
-        R = Rotation.from_rotvec(shaft_parts(E, centre, axis)[0] * axis).as_matrix()
-        E = E @ inv_T(make_T(R, on_line - R @ on_line))
+        E = E @ inv_T(turn_about(axis, on_line, shaft_parts(E, centre, axis)[0]))
     if slide:
         E = E.copy()
         E[:3, 3] -= shaft_parts(E, centre, axis)[1] * axis
