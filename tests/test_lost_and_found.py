@@ -371,3 +371,38 @@ def test_without_masks_the_predicted_mask_stays_within_the_first_masks_reach_acr
     assert inside(bounded, seq[1].mask & (seq[1].depth > 0)) > 0.85
     unbounded, _ = predicted(0.0)
     assert inside(unbounded, surface) > 0.5
+
+
+def test_without_masks_a_region_of_the_first_frames_colours_with_broken_depth_grows_into_the_rest(synth_seq):
+    """Lost with no mask given. The instrument is back where it was, but the first frame's colours show only on a
+    stretch of it whose depth the sensor breaks up (every other pixel, as on bright metal); the rest of it shows a
+    colour the first frame did not (posterior near 0.5, below the search's threshold), with its depth. The colour
+    region alone has no trusted points to re-localise on and the frame stays lost; grown into the pixels of
+    middling posterior around it (``preprocess.search_grow_colour``), it is re-localised where the instrument is."""
+    seq = open_sequence(synth_seq)
+    cfg = _relocalising_every_frame()
+    cfg.failure.min_pixels = 60  # a thin shaft at 320 x 240
+    frame = seq[4]
+    v, u = np.nonzero(frame.mask & (frame.depth > 0))
+    shaft = np.linalg.eigh(np.cov(np.stack([u, v])))[1][:, -1]
+    along = (u - u.mean()) * shaft[0] + (v - v.mean()) * shaft[1]
+    strip = np.abs(along) < 40  # about half the shaft in view
+    rgb, depth = frame.rgb.copy(), frame.depth.copy()
+    rgb[v[~strip], u[~strip]] = (200, 40, 200)  # a colour no part of the first frame had
+    broken = strip & ((u + v) % 2 == 1)
+    depth[v[broken], u[broken]] = 0.0
+    later = replace(frame, rgb=rgb, depth=depth)
+
+    def pose_found(grow: float) -> np.ndarray | None:
+        cfg.preprocess.search_grow_colour = grow
+        tracker, align = _lost_after(seq, cfg)
+        posterior = tracker.colour.posterior(rgb[v[~strip], u[~strip]])
+        assert 0.4 <= posterior.min() and posterior.max() < cfg.preprocess.search_mask_colour
+        result = tracker.track(later, None)
+        return None if result.status != RELOCALISED else result.pose @ align
+
+    assert pose_found(0.0) is None
+    pose = pose_found(0.4)
+    assert pose is not None
+    gt = seq.gt_poses()[frame.id]
+    assert np.linalg.norm(pose[:3, 3] - gt[:3, 3]) < 0.01 and rotation_angle_deg(pose[:3, :3].T @ gt[:3, :3]) < 5

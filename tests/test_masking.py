@@ -6,7 +6,15 @@ import numpy as np
 from scipy.ndimage import minimum_filter
 
 from surgtrack.geometry import make_T, project
-from surgtrack.masking import ColourModel, predict_mask, render_depth, search_regions, seen_past, silhouette_iou
+from surgtrack.masking import (
+    ColourModel,
+    grow_region,
+    predict_mask,
+    render_depth,
+    search_regions,
+    seen_past,
+    silhouette_iou,
+)
 
 K = np.array([[200.0, 0, 80], [0, 200.0, 60], [0, 0, 1]])
 GREY, GREEN, SKIN, BLUE = (150, 150, 155), (40, 140, 60), (220, 170, 140), (30, 40, 200)
@@ -154,6 +162,23 @@ def test_search_cuts_a_merged_region_where_the_depth_jumps():
     assert cut.sum() > 0.9 * (bar & (depth2 > 0)).sum() and not (cut & hand).any()
     uncut = search_regions(colours.posterior(rgb2), depth2, K, last, 0.5, 0.6, pixels, n=3, depth_step=0.1)
     assert any((region == patch).all() for region in uncut) and not any((region & bar).any() for region in uncut)
+
+
+def test_a_search_region_grows_into_middling_colours_within_its_reach_but_not_onto_the_drape():
+    """The bar's grey shows only on its left end, the rest of it is a colour the first frame did not show
+    (posterior near 0.5), and a patch of that colour lies on the drape beside it, a depth jump away."""
+    rgb, depth, mask = scene()
+    colours = ColourModel()
+    colours.learn(rgb, mask)
+    rgb2, depth2, (bar, patch) = later_frame([(np.s_[50:70, 30:130], 0.3), (np.s_[70:80, 60:90], 0.5)])
+    rgb2[:, 50:] = np.where((bar | patch)[:, 50:, None], BLUE, rgb2[:, 50:])
+    posterior = colours.posterior(rgb2)
+    assert 0.4 <= posterior[bar].min() and posterior[patch].max() < 0.6 and posterior[~(bar | patch)].max() < 0.4
+    grey = bar & (posterior >= 0.6)
+    near = bar.copy()
+    near[:, 65:] = False  # within 15 px of the grey end
+    assert (grow_region(grey, depth2, posterior, 0.4, 15, 0.01) == near).all()
+    assert (grow_region(grey, depth2, posterior, 0.4, 100, 0.01) == bar).all()
 
 
 def test_predicted_mask_leaves_out_a_glove_inside_the_outline_whose_colour_the_first_frame_saw_further_away():

@@ -30,6 +30,9 @@ class PreprocessConfig:
     # predicted mask may extend (a hand beside the shaft stays out; 0: off)
     predicted_mask_remask: bool = True  # mask a frame again at its tracked pose and optimise the graph once more
     search_mask_colour: float = 0.6  # lost without a given mask: pixels whose colour is instrument with this posterior
+    search_grow_colour: float = 0.4  # lost without a given mask: a colour region with too few trusted pixels grows
+    # into pixels of at least this posterior within search_grow_reach of it (`masking.grow_region`; 0: off)
+    search_grow_reach: int = 15  # pixels around such a region that it may grow into
     normal_step: int = 1  # normals from neighbours this many pixels away (larger: smoother, fewer thin-part pixels)
     max_grazing_deg: float = 80.0  # drop points whose normal is further than this from the viewing ray
     min_depth: float = 0.1  # m

@@ -96,6 +96,17 @@ def grow_mask(mask: np.ndarray, depth: np.ndarray, candidates: np.ndarray, step:
     return mask | added
 
 
+def grow_region(region: np.ndarray, depth: np.ndarray, posterior: np.ndarray, min_posterior: float, reach: int,
+                step: float) -> np.ndarray:
+    """A search region (`search_regions`) grown (`grow_mask`) into the pixels within ``reach`` pixels of it whose
+    colour posterior is at least ``min_posterior``, connected to it without a depth jump of more than ``step`` (m).
+    The instrument's most certain colours can lie where the sensor drops the depth (bright, specular metal), and its
+    parts with depth show colours the first frame did not (a posterior near 0.5): the region alone then holds too
+    few points to re-localise on."""
+    near = cv2.dilate(region.astype(np.uint8), np.ones((2 * reach + 1,) * 2, np.uint8)).astype(bool)
+    return grow_mask(region, depth, near & (posterior >= min_posterior), step, np.inf)
+
+
 def within_reach(mask: np.ndarray, depth: np.ndarray, K: np.ndarray, pose: np.ndarray,
                  axis: tuple[np.ndarray, np.ndarray, float], margin: float) -> np.ndarray:
     """``mask`` without the pixels whose points, in the object frame at ``pose``, lie further than the reach plus

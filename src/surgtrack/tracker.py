@@ -38,6 +38,7 @@ from .global_registration import global_register, icp_from
 from .io import Frame
 from .masking import (
     ColourModel,
+    grow_region,
     predict_mask,
     render_depth,
     search_regions,
@@ -345,13 +346,18 @@ class SurgTracker:
         shaft), and the pose found on it is held to the cap anyway."""
         f, pre = self.cfg.failure, self.cfg.preprocess
         seen = max(max(k.area for k in self.pool.keyframes), f.min_pixels)
-        regions = search_regions(colour.posterior(frame.rgb), frame.depth, frame.K, self._last_seen(),
+        posterior = colour.posterior(frame.rgb)
+        regions = search_regions(posterior, frame.depth, frame.K, self._last_seen(),
                                  self._reach(frame.index, capped=False), pre.search_mask_colour,
                                  (f.min_pixels, 3 * seen), f.search_regions)
         clock.lap("preprocess")
         best, best_iou = None, f.relocalise_min_iou
         for region in regions:
             obs = preprocess(frame, region, pre, mask_given=False)
+            if obs.n_valid < f.min_pixels and pre.search_grow_colour > 0:
+                region = grow_region(region, frame.depth, posterior, pre.search_grow_colour, pre.search_grow_reach,
+                                     pre.predicted_mask_grow_step)
+                obs = preprocess(frame, region, pre, mask_given=False)
             clock.lap("preprocess")
             if obs.n_valid < f.min_pixels:
                 continue
