@@ -343,7 +343,8 @@ class SurgTracker:
         best with its region (`masking.silhouette_iou`), if by at least ``failure.relocalise_min_iou``. The model's
         fit alone prefers a fingertip-sized region, which some part of the model always fits. Regions are looked for
         within the reach without its cap: a region's centroid can lie far from the instrument's origin (a long
-        shaft), and the pose found on it is held to the cap anyway."""
+        shaft), and the pose found on it is held to the cap anyway. A region with too few trusted points is tried
+        grown into the instrument's other colours around it (`masking.grow_region`)."""
         f, pre = self.cfg.failure, self.cfg.preprocess
         seen = max(max(k.area for k in self.pool.keyframes), f.min_pixels)
         posterior = colour.posterior(frame.rgb)
