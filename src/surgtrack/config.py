@@ -24,7 +24,8 @@ class PreprocessConfig:
     # are an occluder, and its colours join the colour model's surroundings (0: off; 0.02 measured, see RESULTS.md)
     predicted_mask_grow: float = 0.0  # min colour posterior of pixels a predicted mask grows into, connected to it
     # without a depth jump: parts of the instrument the model has not seen yet (0: off)
-    predicted_mask_grow_step: float = 0.01  # m: depth jump between neighbours that stops the growth
+    predicted_mask_grow_step: float = 0.01  # m: depth jump between neighbours that stops the growth (of a predicted
+    # mask, and of a search region short of points, search_grow_colour)
     predicted_mask_grow_ratio: float = 2.0  # growth beyond this times the mask's area is not taken
     predicted_mask_across: float = 0.0  # m beyond the first mask's reach across the instrument's long axis that a
     # predicted mask may extend (a hand beside the shaft stays out; 0: off)
