@@ -1,6 +1,7 @@
-"""What L_FS (`posture_graph.FreeSpace`) costs tracking, per frame, measured call by call.
+"""What L_FS (`posture_graph.FreeSpace`), or L_CV (`posture_graph.Coverage`), costs tracking, per frame, measured
+call by call.
 
-    .venv/bin/python benchmarks/free_space_cost.py DATA [--repeats N]
+    .venv/bin/python benchmarks/free_space_cost.py DATA [--repeats N] [--term coverage]
 
 DATA holds rendered sequences, one folder each (e.g. the ``data/`` folder that ``surgtrack bench --frames 100``
 writes). Each sequence is tracked once with per-frame masks, the SDF off (so the run is the same every time and no
@@ -9,7 +10,8 @@ worker shares the cores), and every L_FS evaluation the posture graph makes is r
 replayed ``--repeats`` times and the fastest replay of each is kept, so a drift of the machine's speed, which
 decides a whole-run comparison on a shared machine, barely touches the figure. Prints, per sequence, the L_FS
 calls a frame, microseconds a call, the mask edge's milliseconds a frame and the sum, beside the tracking's own
-milliseconds a frame.
+milliseconds a frame. With ``--term coverage`` the same for L_CV: its calls, and the mask edges of the keyframes
+it looks into (each built once, when the keyframe is first looked into).
 """
 
 from __future__ import annotations
@@ -19,33 +21,43 @@ from pathlib import Path
 
 from recorded import fastest, sequences, track_recording
 
-from surgtrack.posture_graph import FreeSpace
+from surgtrack.posture_graph import Coverage, FreeSpace
 from surgtrack.preprocess import MaskEdge
 
+TERMS = {"free_space": FreeSpace, "coverage": Coverage}
 
-def recorded_calls(seq_root: Path) -> tuple[list, int, float]:
-    """Track the sequence (SDF off) and return its L_FS calls (FreeSpace, C, cfg), frames and seconds."""
+
+def recorded_calls(seq_root: Path, term: type) -> tuple[list, int, float]:
+    """Track the sequence (SDF off) and return the term's calls (term, C, cfg), frames and seconds."""
     calls = []
 
-    def record(residuals, fs, C, cfg):  # noqa: ANN001, ANN202 - a transparent wrapper
-        calls.append((fs, C.copy(), cfg))
-        return residuals(fs, C, cfg)
+    def record(residuals, t, C, cfg):  # noqa: ANN001, ANN202 - a transparent wrapper
+        calls.append((t, C.copy(), cfg))
+        return residuals(t, C, cfg)
 
-    return calls, *track_recording(seq_root, FreeSpace, "residuals", record)
+    return calls, *track_recording(seq_root, term, "residuals", record)
+
+
+def edges(t: FreeSpace | Coverage) -> list[MaskEdge]:
+    """The mask edges a call uses: the frame's for L_FS, the keyframes' for L_CV."""
+    return [t.edge] if isinstance(t, FreeSpace) else [fs.edge for fs, _ in t.views]
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("data", type=Path)
     ap.add_argument("--repeats", type=int, default=7)
+    ap.add_argument("--term", choices=sorted(TERMS), default="free_space")
     args = ap.parse_args()
-    print(f"{'sequence':<18} {'calls/frame':>11} {'us/call':>8} {'edge ms/frame':>13} {'L_FS ms/frame':>13} "
+    term = TERMS[args.term]
+    name = "L_FS" if term is FreeSpace else "L_CV"
+    print(f"{'sequence':<18} {'calls/frame':>11} {'us/call':>8} {'edge ms/frame':>13} {name + ' ms/frame':>13} "
           f"{'tracking ms/frame':>17}")
     totals = [0, 0.0, 0.0, 0.0]
     for root in sequences(args.data):
-        calls, frames, seconds = recorded_calls(root)
-        masks = list({id(fs.edge): (fs.edge.mask,) for fs, _, _ in calls}.values())
-        t_res = fastest(FreeSpace.residuals, calls, args.repeats)
+        calls, frames, seconds = recorded_calls(root, term)
+        masks = list({id(e): (e.mask,) for t, _, _ in calls for e in edges(t)}.values())
+        t_res = fastest(term.residuals, calls, args.repeats)
         t_edge = fastest(MaskEdge.of, masks, args.repeats)
         per_call = 1e6 * t_res / max(len(calls), 1)
         print(f"{root.name:<18} {len(calls) / frames:11.1f} {per_call:8.0f} {1e3 * t_edge / frames:13.2f} "

@@ -16,6 +16,7 @@ from .config import PoolConfig
 from .features import Features
 from .geometry import rotation_gaps_deg
 from .posture_graph import GridPoints
+from .preprocess import MaskEdge
 
 
 @dataclass(eq=False)
@@ -33,6 +34,7 @@ class Keyframe:
     K: np.ndarray
     tracked_pose: np.ndarray | None = None  # the pose tracking gave it (pose may be refined with the SDF since)
     image: np.ndarray | None = None  # (H, W) uint8 intensity, for the appearance check of re-localisation
+    mask_given: bool = True  # its mask came with the frame (not predicted from the model)
 
     def __post_init__(self) -> None:
         if self.tracked_pose is None:
@@ -42,6 +44,11 @@ class Keyframe:
     def grid_points(self) -> GridPoints:
         """The grid's valid points for the posture graph, found once."""
         return GridPoints.of(self.xyz, self.normals)
+
+    @cached_property
+    def mask_edge(self) -> MaskEdge:
+        """Its mask with the mask's edge pixels, for what it saw past (`posture_graph.FreeSpace`)."""
+        return MaskEdge.of(self.mask)
 
     @cached_property
     def area(self) -> int:

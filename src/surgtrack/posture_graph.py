@@ -8,7 +8,8 @@ poses minimise the energy of eq. 8,
 with L_3D the matched-feature distance in the object frame (eq. 9), L_2D the projective point-to-plane distance
 (eq. 10) and L_SDF the signed distance of the current frame's points to the instrument surface (eq. 11), every term
 under the Huber loss rho. Optionally (not in the paper) w_fs L_FS(t): the model's points that the current frame saw
-past, into the background, pulled back inside the frame's mask (`FreeSpace`).
+past, into the background, pulled back inside the frame's mask (`FreeSpace`); and w_cv L_CV(t): the frame's
+points that the keyframes saw past, pulled back inside their masks (`Coverage`).
 
 Parametrisation: each node's camera-in-object pose C_i = pose_i^-1 receives a left increment,
 C_i <- exp(delta_i) C_i with delta_i = (rho, phi) and `geometry.se3_exp` (translation rho, rotation exp(phi)); this
@@ -108,37 +109,77 @@ class FreeSpace:
         return cls(np.asarray(points[::step], dtype=np.float64), edge, np.asarray(depth, dtype=np.float32),
                    np.asarray(K, dtype=np.float64))
 
-    def residuals(self, C: np.ndarray, cfg: GraphConfig) -> tuple[np.ndarray, np.ndarray]:
-        """L_FS at the camera-in-object pose C: residuals r (M,) and Jacobians (6, M) on the left increment delta,
-        for the M points in free space (every other point's residual is 0).
+    def seen_past(self, y: np.ndarray, C: np.ndarray, cfg: GraphConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Which of the object-frame points ``y`` this view, at the camera-in-object pose C, saw past: their rows k,
+        residuals r and gradients g = d r / d y (3, M) in the object frame.
 
-        A model point y seen at x = C^-1 y, pixel (u, v), is in free space where the frame's depth at that pixel
-        lies more than ``cfg.free_space_tol`` behind it (it saw past the point, not an occluder in front of it) and
-        (u, v) is more than ``cfg.free_space_margin`` pixels from the mask; then r = (dist(u, v) - margin) z / f_x,
-        its distance to the mask in metres at the point's depth (z / f_x held constant in the Jacobian). The
-        increment moves y by -(rho + phi x y) relative to the camera, so dr/d delta = [-g, g x y] with
-        g = d r / d y in the object frame."""
+        A point seen at x = C^-1 y, pixel (u, v), is in free space where the view's depth at that pixel lies more
+        than ``cfg.free_space_tol`` behind it (it saw past the point, not an occluder in front of it) and (u, v) is
+        more than ``cfg.free_space_margin`` pixels from the mask; then r = (dist(u, v) - margin) z / f_x, its
+        distance to the mask in metres at the point's depth (z / f_x held constant in the gradient)."""
         (fx, _, cx), (_, fy, cy) = self.K[0], self.K[1]
         h, w = self.depth.shape
-        uv, z = project((self.points - C[:3, 3]) @ C[:3, :3], self.K)  # x = R_C^T (y - t_C)
+        uv, z = project((y - C[:3, 3]) @ C[:3, :3], self.K)  # x = R_C^T (y - t_C)
         u, v = uv.T
         k = np.flatnonzero((z > 1e-6) & (u >= -0.5) & (u < w - 0.5) & (v >= -0.5) & (v < h - 0.5))
         z, u, v = z[k], u[k], v[k]
         px = (v + 0.5).astype(np.int64) * w + (u + 0.5).astype(np.int64)
         seen = ~self.edge.mask.ravel()[px] & (self.depth.ravel()[px] > z + cfg.free_space_tol)  # NaN: not seen
         if not seen.any():
-            return np.zeros(0), np.zeros((6, 0))
+            return np.zeros(0, np.int64), np.zeros(0), np.zeros((3, 0))
         k, z, u, v = k[seen], z[seen], u[seen], v[seen]
         dist, gu, gv = self.edge.distance(u, v)
         free = dist > cfg.free_space_margin
         k, z, u, v, gu, gv = k[free], z[free], u[free], v[free], gu[free], gv[free]
-        off = dist[free] - cfg.free_space_margin
         s = z / fx
         g = C[:3, :3] @ (np.stack([gu * fx, gv * fy, -(gu * (u - cx) + gv * (v - cy))]) * (s / z))  # (3, M)
+        return k, (dist[free] - cfg.free_space_margin) * s, g
+
+    def residuals(self, C: np.ndarray, cfg: GraphConfig) -> tuple[np.ndarray, np.ndarray]:
+        """L_FS at the camera-in-object pose C: residuals r (M,) and Jacobians (6, M) on the left increment delta,
+        for the M model points this frame saw past (`seen_past`; every other point's residual is 0). The increment
+        moves a model point y by -(rho + phi x y) relative to the camera, so dr/d delta = [-g, g x y]."""
+        k, r, g = self.seen_past(self.points, C, cfg)
         J = np.empty((6, len(k)))
         J[:3] = -g
         _cross(g[None], self.points[k].T[None], J[None, 3:])
-        return off * s, J
+        return r, J
+
+
+@dataclass(frozen=True)
+class Coverage:
+    """What the keyframes saw past, for L_CV: the current frame's points (camera frame) and, for each keyframe, its
+    free space (`FreeSpace`, no points of its own) and camera-in-object pose. The counterpart of L_FS: that keeps
+    the model out of what the frame saw past, this keeps the frame's points out of what the keyframes saw past, so
+    a shaft slid along itself is held by whichever of its ends a keyframe saw with background beyond it."""
+
+    points: np.ndarray  # (N, 3) current camera frame
+    views: tuple[tuple[FreeSpace, np.ndarray], ...]  # (free space, camera-in-object pose) of each keyframe
+
+    @classmethod
+    def of(cls, points: np.ndarray, views: Sequence[tuple[FreeSpace, np.ndarray]], cap: int) -> Coverage:
+        """At most ``cap`` of the frame's ``points`` (strided) against the keyframes' ``views``."""
+        step = int(np.ceil(len(points) / cap)) if 0 < cap < len(points) else 1
+        return cls(np.asarray(points[::step], dtype=np.float64), tuple(views))
+
+    def residuals(self, C: np.ndarray, cfg: GraphConfig) -> tuple[np.ndarray, np.ndarray]:
+        """L_CV at the current frame's camera-in-object pose C: residuals r (M,) and Jacobians (6, M) on the left
+        increment delta, one for each (point, keyframe) pair where the keyframe saw past the point y = C x
+        (`FreeSpace.seen_past`) by at most ``cfg.coverage_gate``: a point further in stands there because the pose
+        is wrong across the board, not slid, and pulling it in would not mend that. The increment moves y by
+        rho + phi x y, so dr/d delta = [g, y x g]."""
+        y = self.points @ C[:3, :3].T + C[:3, 3]
+        rs, Js = [np.zeros(0)], [np.zeros((6, 0))]
+        for fs, C_k in self.views:
+            k, r, g = fs.seen_past(y, C_k, cfg)
+            near = r <= cfg.coverage_gate
+            k, r, g = k[near], r[near], g[:, near]
+            J = np.empty((6, len(k)))
+            J[:3] = g
+            _cross(y[k].T[None], g[None], J[None, 3:])
+            rs.append(r)
+            Js.append(J)
+        return np.concatenate(rs), np.concatenate(Js, axis=1)
 
 
 def huber_weight(r: np.ndarray, delta: float) -> np.ndarray:
@@ -394,6 +435,7 @@ def optimize_graph(
     pairs_2d: Sequence[tuple[int, int]] | None = None,
     priors: Sequence[tuple[int, np.ndarray]] = (),
     free_space: tuple[int, FreeSpace] | None = None,
+    coverage: tuple[int, Coverage] | None = None,
 ) -> list[np.ndarray]:
     """Optimised 4x4 object-to-camera poses of ``nodes`` minimising the energy of eq. 8; fixed nodes are returned
     unchanged.
@@ -413,6 +455,9 @@ def optimize_graph(
     - Free space (not in the paper): with ``free_space`` = (t, fs), `FreeSpace.residuals` at node t, weight
       ``cfg.w_fs``: the model may not stand where the frame saw the background (a slide along a shaft moves its end
       out of the mask).
+    - Coverage (not in the paper): with ``coverage`` = (t, cv), `Coverage.residuals` at node t, weight ``cfg.w_cv``:
+      the frame's points may not stand where a keyframe saw the background (a slide along a shaft moves the end
+      the frame shows beyond the end the keyframes saw). With L_FS it holds a slide from both sides.
 
     Every residual goes through the Huber loss with ``cfg.huber_delta``; ``cfg.iterations`` re-weighted Gauss-Newton
     steps are taken (parametrisation in the module docstring). Without a fixed node the gauge is held only by the
@@ -482,6 +527,11 @@ def optimize_graph(
             t, fs = free_space
             r, J = fs.residuals(C[t], cfg)
             ne.add(np.array([t]), J[None], r[None], (cfg.w_fs * huber_weight(r, hd))[None])
+
+        if coverage is not None and free[coverage[0]] and cfg.w_cv > 0:
+            t, cv = coverage
+            r, J = cv.residuals(C[t], cfg)
+            ne.add(np.array([t]), J[None], r[None], (cfg.w_cv * huber_weight(r, hd))[None])
 
         for t, prior in priors:
             if free[t] and cfg.w_m > 0:

@@ -21,7 +21,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from .appearance import intensity, keyframe_ncc, sample
-from .config import SDFConfig, TrackerConfig
+from .config import GraphConfig, SDFConfig, TrackerConfig
 from .features import FeatureExtractor, Features, match
 from .geometry import (
     backproject,
@@ -48,7 +48,7 @@ from .masking import (
 )
 from .memory_pool import Keyframe, MemoryPool
 from .model import InstrumentModel
-from .posture_graph import FeatureEdge, FreeSpace, GraphNode, GridPoints, optimize_graph
+from .posture_graph import Coverage, FeatureEdge, FreeSpace, GraphNode, GridPoints, optimize_graph
 from .preprocess import Observation, preprocess
 from .ransac import plausible, ransac_pose, within
 from .registration import BackgroundFitter, InstrumentSDF, keep_near
@@ -577,9 +577,11 @@ class SurgTracker:
         and ``failure.relocalise_w_m``. With ``obs`` and ``graph.w_fs`` set, L_FS keeps the model out of what the
         frame saw past (`posture_graph.FreeSpace`), when the frame came with its mask: a mask predicted from the
         model (or a colour region while lost) leaves out what the model's pose leaves out, and the background beside
-        it is not known to be free (``graph.free_space_predicted`` trusts it all the same). A frame that came with its
-        mask takes ``graph.given_mask_iterations`` Gauss-Newton steps, one on a predicted mask ``graph.iterations``:
-        its mask is found again at the pose they reach (`_remasked`), which fewer steps leave short. Sets
+        it is not known to be free (``graph.free_space_predicted`` trusts it all the same). Such a frame, unless it is
+        a re-localisation ``candidate`` (held where it was found), also gets L_CV (`_coverage`): its points kept out
+        of what the first keyframe saw past. A frame that came with its mask takes ``graph.given_mask_iterations``
+        Gauss-Newton steps, one on a predicted mask ``graph.iterations``: its mask is found again at the pose they
+        reach (`_remasked`), which fewer steps leave short. Sets
         ``node.sdf`` to whether L_SDF was in the graph (a field that agrees with the frame, `_field_agrees`, and
         ``graph.w_s`` > 0)."""
         others: list[_Node | Keyframe] = [e[0] for e in edges]
@@ -611,9 +613,25 @@ class SurgTracker:
             free_space = (0, FreeSpace.of(self.model_points, obs.mask_edge, obs.frame.depth, obs.K,
                                           cfg.free_space_points))
         poses = optimize_graph(nodes, graph_edges, cfg, self.sdf if use_sdf else None,
-                               [0] if use_sdf else [], pairs_2d=pairs, priors=[(0, prior)], free_space=free_space)
+                               [0] if use_sdf else [], pairs_2d=pairs, priors=[(0, prior)], free_space=free_space,
+                               coverage=None if candidate else self._coverage(node, others, obs, cfg))
         node.sdf = use_sdf
         return poses[0]
+
+    def _coverage(self, node: _Node, others: list, obs: Observation | None, cfg: GraphConfig) -> tuple | None:
+        """L_CV (`posture_graph.Coverage`) for a frame that came with its mask, or any with
+        ``graph.coverage_predicted``: its points against what up to ``graph.coverage_keyframes`` keyframes whose
+        masks came with them saw past: the first keyframe, which anchors the object frame (the default looks into
+        it alone: later keyframes carry the slides of their own poses), then the graph's memory keyframes nearest in
+        view."""
+        if obs is None or not (obs.mask_given or cfg.coverage_predicted) or cfg.w_cv <= 0 or not self.pool.keyframes:
+            return None
+        kfs: list[Keyframe] = []
+        for kf in [self.pool.keyframes[0], *(o for o in others if isinstance(o, Keyframe))]:
+            if kf.mask_given and all(kf is not k for k in kfs) and len(kfs) < cfg.coverage_keyframes:
+                kfs.append(kf)
+        views = [(FreeSpace(np.zeros((0, 3)), kf.mask_edge, kf.depth, kf.K), inv_T(kf.pose)) for kf in kfs]
+        return (0, Coverage.of(node.grid_points.p, views, cfg.coverage_points)) if views else None
 
     def _field_agrees(self, node: _Node) -> bool:
         """Whether the field fits the frame at its coarse pose well enough to join the graph (L_SDF, eq. 11): the
@@ -663,7 +681,7 @@ class SurgTracker:
 
     def _add_keyframe(self, node: _Node, obs: Observation) -> None:
         kf = Keyframe(node.frame_id, node.pose, node.features, node.xyz, node.normals, node.K_grid,
-                      obs.frame.depth, obs.mask, obs.K, image=intensity(obs.frame.rgb))
+                      obs.frame.depth, obs.mask, obs.K, image=intensity(obs.frame.rgb), mask_given=obs.mask_given)
         kf.grid_points = node.grid_points  # the same grid: its points were found once, for the frame
         self.pool.add(kf)
         self._remember_points(kf, obs.mask_given)
