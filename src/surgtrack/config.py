@@ -102,6 +102,7 @@ class GraphConfig:
     w_cv: float = 1.0  # weight of L_CV, the frame's points a keyframe saw past pulled into its mask (0: off)
     coverage_points: int = 1000  # frame points (strided) that L_CV projects into each keyframe
     coverage_gate: float = 0.02  # m: a point further into the keyframe's free space shows a wrong pose, not a slide
+    coverage_min_share: float = 0.0  # L_CV only on frames with this share of the first keyframe's points at least
     coverage_keyframes: int = 1  # keyframes L_CV looks into: the first (the anchor), then the graph's nearest
     coverage_predicted: bool = False  # L_CV also on frames that came without a mask (predicted masks)
 

@@ -623,15 +623,20 @@ class SurgTracker:
         ``graph.coverage_predicted``: its points against what up to ``graph.coverage_keyframes`` keyframes whose
         masks came with them saw past: the first keyframe, which anchors the object frame (the default looks into
         it alone: later keyframes carry the slides of their own poses), then the graph's memory keyframes nearest in
-        view."""
+        view. None on a frame with fewer than ``graph.coverage_min_share`` of the first keyframe's points (0 by
+        default): an object mostly hidden in the hand that holds it leaves the pose loose, and a few of its points
+        in the keyframe's free space can pull it further off."""
         if obs is None or not (obs.mask_given or cfg.coverage_predicted) or cfg.w_cv <= 0 or not self.pool.keyframes:
             return None
         kfs: list[Keyframe] = []
         for kf in [self.pool.keyframes[0], *(o for o in others if isinstance(o, Keyframe))]:
             if kf.mask_given and all(kf is not k for k in kfs) and len(kfs) < cfg.coverage_keyframes:
                 kfs.append(kf)
+        points = node.grid_points.p
+        if len(points) < cfg.coverage_min_share * len(self.pool.keyframes[0].grid_points.p):
+            return None
         views = [(FreeSpace(np.zeros((0, 3)), kf.mask_edge, kf.depth, kf.K), inv_T(kf.pose)) for kf in kfs]
-        return (0, Coverage.of(node.grid_points.p, views, cfg.coverage_points)) if views else None
+        return (0, Coverage.of(points, views, cfg.coverage_points)) if views else None
 
     def _field_agrees(self, node: _Node) -> bool:
         """Whether the field fits the frame at its coarse pose well enough to join the graph (L_SDF, eq. 11): the
