@@ -416,6 +416,36 @@ def test_free_space_acts_on_frames_that_came_with_their_mask(synth_seq, monkeypa
     assert seen and all(fs is None for fs in seen)
 
 
+def test_coverage_looks_into_the_first_keyframe_on_frames_that_came_with_their_mask(synth_seq, monkeypatch):
+    """L_CV (graph.w_cv) refines the pose of a frame given with its mask against what the first keyframe saw past,
+    and only that keyframe by default; a frame masked from the model's prediction, one that shows less than
+    graph.coverage_min_share of the first keyframe's points, and w_cv 0 go without it."""
+    import surgtrack.tracker as tracker_module
+
+    seq = open_sequence(synth_seq)
+    seen = []
+    graph = tracker_module.optimize_graph
+    monkeypatch.setattr(tracker_module, "optimize_graph",
+                        lambda *a, **k: seen.append(k.get("coverage")) or graph(*a, **k))
+    cfg = TrackerConfig()
+    cfg.sdf.enabled = False
+    tracker = SurgTracker(cfg)
+    tracker.register(seq[0], seq[0].mask)
+    first = tracker.pool.keyframes[0]
+    assert tracker.track(seq[1], seq[1].mask).status == "tracked"
+    assert seen and all(cv is not None and cv[0] == 0 for cv in seen)
+    (fs, C), = seen[-1][1].views
+    assert fs.edge is first.mask_edge and np.allclose(C @ first.pose, np.eye(4))
+    seen.clear()
+    assert tracker.track(seq[2], None).status == "tracked"
+    assert seen and all(cv is None for cv in seen)
+    for setting, value in (("coverage_min_share", 10.0), ("w_cv", 0.0)):
+        tracker.cfg.graph = replace(cfg.graph, **{setting: value})
+        seen.clear()
+        tracker.track(seq[3], seq[3].mask)
+        assert seen and all(cv is None for cv in seen)
+
+
 def test_the_field_is_refitted_as_keyframes_arrive_after_the_pool_is_full(synth_seq, monkeypatch):
     """sdf.refit_every counts the keyframes added, not the pool's size: a full pool stays full as keyframes come
     and go, and the field must still be refitted on them."""
