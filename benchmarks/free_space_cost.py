@@ -10,8 +10,8 @@ worker shares the cores), and every L_FS evaluation the posture graph makes is r
 replayed ``--repeats`` times and the fastest replay of each is kept, so a drift of the machine's speed, which
 decides a whole-run comparison on a shared machine, barely touches the figure. Prints, per sequence, the L_FS
 calls a frame, microseconds a call, the mask edge's milliseconds a frame and the sum, beside the tracking's own
-milliseconds a frame. With ``--term coverage`` the same for L_CV: its calls, and the mask edges of the keyframes
-it looks into (each built once, when the keyframe is first looked into).
+milliseconds a frame. With ``--term coverage`` the same for L_CV: its calls, and the mask edge of the first
+keyframe it looks into (built once).
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ def recorded_calls(seq_root: Path, term: type) -> tuple[list, int, float]:
 
 def edges(t: FreeSpace | Coverage) -> list[MaskEdge]:
     """The mask edges a call uses: the frame's for L_FS, the keyframes' for L_CV."""
-    return [t.edge] if isinstance(t, FreeSpace) else [fs.edge for fs, _ in t.views]
+    return [t.edge] if isinstance(t, FreeSpace) else [t.view.edge]
 
 
 def main() -> None:

@@ -7,7 +7,6 @@ import json
 import shutil
 import subprocess
 import zipfile
-from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -178,21 +177,6 @@ def test_version_1_file_reads_with_an_axis_aligned_grid(scanned, tmp_path):
     np.testing.assert_array_equal(old.sdf.rotation, np.eye(3))
     assert not np.allclose(model.sdf.rotation, np.eye(3))  # the scan's box follows the instrument
     np.testing.assert_array_equal(old.sdf.grid.origin, model.sdf.grid.origin)
-
-
-def test_keyframes_say_whether_their_mask_came_with_the_frame(scanned, tmp_path):
-    """A keyframe whose mask was predicted keeps saying so in the file (L_CV looks only into keyframes whose mask
-    came with the frame); files written before the flag was stored read as given masks."""
-    model, _ = scanned
-    assert all(kf.mask_given for kf in model.keyframes)  # the fixture tracks with every frame's mask
-    kfs = [replace(kf) for kf in model.keyframes]
-    kfs[-1].mask_given = False
-    path = save_model(replace(model, keyframes=kfs), tmp_path / "predicted.stm")
-    assert [kf.mask_given for kf in load_model(path).keyframes] == [True] * (len(kfs) - 1) + [False]
-    meta = read_meta(path)
-    for km in meta["keyframes"]:
-        km.pop("mask_given")
-    assert all(kf.mask_given for kf in load_model(rewrite(path, tmp_path / "old.stm", meta=meta)).keyframes)
 
 
 def test_a_file_without_keyframe_images_loads_without_them(scanned, tmp_path):

@@ -367,7 +367,7 @@ def test_coverage_pulls_a_slid_pose_back_into_what_the_keyframe_saw():
     truth, nodes, fs = face_on_free_space(occluded=False)
     xyz = nodes[0].xyz
     frame_points = xyz[xyz[..., 2] > 0]
-    cv = Coverage.of(frame_points, [(fs, inv_T(truth))], 1000)
+    cv = Coverage.of(frame_points, fs, inv_T(truth), 1000)
     assert len(cv.points) <= 1000
     assert len(cv.residuals(inv_T(truth), GraphConfig())[0]) == 0  # at the truth every point lies in the mask
     r, J = cv.residuals(inv_T(nodes[0].pose), GraphConfig())
@@ -379,6 +379,6 @@ def test_coverage_pulls_a_slid_pose_back_into_what_the_keyframe_saw():
     # The frame's points lie on its grid, 4 px apart at 640 px (2 mm here): the outermost stops within the margin.
     assert trans < 0.0035 and rot < 0.3
     hidden = FreeSpace(fs.points, fs.edge, np.where(fs.edge.mask, fs.depth, 0.2).astype(np.float32), fs.K)
-    cv = Coverage.of(frame_points, [(hidden, inv_T(truth))], 1000)
+    cv = Coverage.of(frame_points, hidden, inv_T(truth), 1000)
     kept = optimize_graph(nodes, [], GraphConfig(w_fs=0.0, w_cv=1.0, iterations=15), coverage=(0, cv))
     assert np.linalg.norm(kept[0][:3, 3] - truth[:3, 3]) > 0.008

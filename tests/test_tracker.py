@@ -417,8 +417,8 @@ def test_free_space_acts_on_frames_that_came_with_their_mask(synth_seq, monkeypa
 
 
 def test_coverage_looks_into_the_first_keyframe_on_frames_that_came_with_their_mask(synth_seq, monkeypatch):
-    """L_CV (graph.w_cv) refines the pose of a frame given with its mask against what the first keyframe saw past,
-    and only that keyframe by default; a frame masked from the model's prediction, one that shows less than
+    """L_CV (graph.w_cv) refines the pose of a frame given with its mask against what the first keyframe saw past;
+    a frame masked from the model's prediction, one that shows less than
     graph.coverage_min_share of the first keyframe's points, and w_cv 0 go without it."""
     import surgtrack.tracker as tracker_module
 
@@ -434,8 +434,8 @@ def test_coverage_looks_into_the_first_keyframe_on_frames_that_came_with_their_m
     first = tracker.pool.keyframes[0]
     assert tracker.track(seq[1], seq[1].mask).status == "tracked"
     assert seen and all(cv is not None and cv[0] == 0 for cv in seen)
-    (fs, C), = seen[-1][1].views
-    assert fs.edge is first.mask_edge and np.allclose(C @ first.pose, np.eye(4))
+    cv = seen[-1][1]
+    assert cv.view.edge is first.mask_edge and np.allclose(cv.C_view @ first.pose, np.eye(4))
     seen.clear()
     assert tracker.track(seq[2], None).status == "tracked"
     assert seen and all(cv is None for cv in seen)

@@ -99,11 +99,10 @@ class GraphConfig:
     free_space_margin: float = 2.0  # pixels off the mask before L_FS acts (mask edges, mixed depth)
     free_space_points: int = 1500  # model points (strided) that L_FS projects
     free_space_predicted: bool = False  # L_FS also on frames that came without a mask (predicted masks)
-    w_cv: float = 1.0  # weight of L_CV, the frame's points a keyframe saw past pulled into its mask (0: off)
-    coverage_points: int = 1000  # frame points (strided) that L_CV projects into each keyframe
+    w_cv: float = 1.0  # weight of L_CV, the frame's points the first keyframe saw past pulled into its mask (0: off)
+    coverage_points: int = 1000  # frame points (strided) that L_CV projects into the first keyframe
     coverage_gate: float = 0.02  # m: a point further into the keyframe's free space shows a wrong pose, not a slide
     coverage_min_share: float = 0.0  # L_CV only on frames with this share of the first keyframe's points at least
-    coverage_keyframes: int = 1  # keyframes L_CV looks into: the first (the anchor), then the graph's nearest
     coverage_predicted: bool = False  # L_CV also on frames that came without a mask (predicted masks)
 
 

@@ -34,7 +34,6 @@ class Keyframe:
     K: np.ndarray
     tracked_pose: np.ndarray | None = None  # the pose tracking gave it (pose may be refined with the SDF since)
     image: np.ndarray | None = None  # (H, W) uint8 intensity, for the appearance check of re-localisation
-    mask_given: bool = True  # its mask came with the frame (not predicted from the model)
 
     def __post_init__(self) -> None:
         if self.tracked_pose is None:

@@ -12,9 +12,7 @@ and arrays in NumPy's ``.npy`` format (read without pickle). Format version 2:
                                         "mesh": {"vertices": V, "faces": F},
                                         "keyframes": [{"id", "pose" (4x4 object-to-camera), "K", "K_grid",
                                                        "image_size" [H, W], "grid_size" [h, w], "features" N,
-                                                       "image" true when image.npy is there,
-                                                       "mask_given" false when its mask was predicted (absent:
-                                                       true)}, ...]}
+                                                       "image" true when image.npy is there}, ...]}
     sdf/psi.npy                        float16 (nx, ny, nz): Psi / truncation on the grid nodes, node (i, j, k) at
                                        R^T (origin + voxel (i, j, k)) in the object frame, R the 3x3 "rotation"
                                        (the box's axes as rows; version 1 files have none: identity) (truncation in the
@@ -150,7 +148,7 @@ def save_model(model: InstrumentModel, path: str | Path) -> Path:
             arrays[pre + "image.npy"] = np.asarray(kf.image, np.uint8)
         kf_meta.append({"id": kf.frame_id, "pose": _list(kf.pose), "K": _list(kf.K), "K_grid": _list(kf.K_grid),
                         "image_size": list(kf.depth.shape[:2]), "grid_size": list(kf.xyz.shape[:2]),
-                        "features": len(f), "image": kf.image is not None, "mask_given": kf.mask_given})
+                        "features": len(f), "image": kf.image is not None})
     meta = {
         "format": FORMAT,
         "version": VERSION,
@@ -316,7 +314,6 @@ def _build(r: _Reader, meta: dict, device: str | None) -> InstrumentModel:
             mask=mask,
             K=_matrix(r, km["K"], (3, 3), f"keyframe {i} K"),
             image=r.array(pre + "image.npy", (h_img, w_img), ("uint8",)) if km.get("image") else None,
-            mask_given=bool(km.get("mask_given", True)),
         ))
     descs = {kf.features.desc.shape[1:] + (kf.features.desc.dtype.name,) for kf in keyframes if len(kf.features)}
     if len(descs) > 1:

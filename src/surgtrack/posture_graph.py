@@ -9,7 +9,7 @@ with L_3D the matched-feature distance in the object frame (eq. 9), L_2D the pro
 (eq. 10) and L_SDF the signed distance of the current frame's points to the instrument surface (eq. 11), every term
 under the Huber loss rho. Optionally (not in the paper) w_fs L_FS(t): the model's points that the current frame saw
 past, into the background, pulled back inside the frame's mask (`FreeSpace`); and w_cv L_CV(t): the frame's
-points that the keyframes saw past, pulled back inside their masks (`Coverage`).
+points that the first keyframe saw past, pulled back inside its mask (`Coverage`).
 
 Parametrisation: each node's camera-in-object pose C_i = pose_i^-1 receives a left increment,
 C_i <- exp(delta_i) C_i with delta_i = (rho, phi) and `geometry.se3_exp` (translation rho, rotation exp(phi)); this
@@ -105,9 +105,7 @@ class FreeSpace:
     def of(cls, points: np.ndarray, edge: MaskEdge, depth: np.ndarray, K: np.ndarray, cap: int) -> FreeSpace:
         """At most ``cap`` of ``points`` (strided) against the frame's mask (`preprocess.MaskEdge`) and its
         ``depth``."""
-        step = int(np.ceil(len(points) / cap)) if 0 < cap < len(points) else 1
-        return cls(np.asarray(points[::step], dtype=np.float64), edge, np.asarray(depth, dtype=np.float32),
-                   np.asarray(K, dtype=np.float64))
+        return cls(strided(points, cap), edge, np.asarray(depth, dtype=np.float32), np.asarray(K, dtype=np.float64))
 
     def seen_past(self, y: np.ndarray, C: np.ndarray, cfg: GraphConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Which of the object-frame points ``y`` this view, at the camera-in-object pose C, saw past: their rows k,
@@ -148,38 +146,40 @@ class FreeSpace:
 
 @dataclass(frozen=True)
 class Coverage:
-    """What the keyframes saw past, for L_CV: the current frame's points (camera frame) and, for each keyframe, its
-    free space (`FreeSpace`, no points of its own) and camera-in-object pose. The counterpart of L_FS: that keeps
-    the model out of what the frame saw past, this keeps the frame's points out of what the keyframes saw past, so
-    a shaft slid along itself is held by whichever of its ends a keyframe saw with background beyond it."""
+    """What a keyframe saw past, for L_CV: the current frame's points (camera frame), and the keyframe's free space
+    (`FreeSpace`, no points of its own) with its camera-in-object pose. The counterpart of L_FS: that keeps the model
+    out of what the frame saw past, this keeps the frame's points out of what the keyframe saw past, so a shaft slid
+    along itself is held by whichever of its ends the keyframe saw with background beyond it."""
 
     points: np.ndarray  # (N, 3) current camera frame
-    views: tuple[tuple[FreeSpace, np.ndarray], ...]  # (free space, camera-in-object pose) of each keyframe
+    view: FreeSpace  # the keyframe's mask, depth and intrinsics
+    C_view: np.ndarray  # 4x4 the keyframe's camera-in-object pose
 
     @classmethod
-    def of(cls, points: np.ndarray, views: Sequence[tuple[FreeSpace, np.ndarray]], cap: int) -> Coverage:
-        """At most ``cap`` of the frame's ``points`` (strided) against the keyframes' ``views``."""
-        step = int(np.ceil(len(points) / cap)) if 0 < cap < len(points) else 1
-        return cls(np.asarray(points[::step], dtype=np.float64), tuple(views))
+    def of(cls, points: np.ndarray, view: FreeSpace, C_view: np.ndarray, cap: int) -> Coverage:
+        """At most ``cap`` of the frame's ``points`` (strided) against the keyframe's ``view`` at ``C_view``."""
+        return cls(strided(points, cap), view, np.asarray(C_view, dtype=np.float64))
 
     def residuals(self, C: np.ndarray, cfg: GraphConfig) -> tuple[np.ndarray, np.ndarray]:
         """L_CV at the current frame's camera-in-object pose C: residuals r (M,) and Jacobians (6, M) on the left
-        increment delta, one for each (point, keyframe) pair where the keyframe saw past the point y = C x
-        (`FreeSpace.seen_past`) by at most ``cfg.coverage_gate``: a point further in stands there because the pose
-        is wrong across the board, not slid, and pulling it in would not mend that. The increment moves y by
-        rho + phi x y, so dr/d delta = [g, y x g]."""
+        increment delta, for the M points y = C x the keyframe saw past (`FreeSpace.seen_past`) by at most
+        ``cfg.coverage_gate``: a point further in stands there because the pose is wrong across the board, not
+        slid, and pulling it in would not mend that. The increment moves y by rho + phi x y, so
+        dr/d delta = [g, y x g]."""
         y = self.points @ C[:3, :3].T + C[:3, 3]
-        rs, Js = [np.zeros(0)], [np.zeros((6, 0))]
-        for fs, C_k in self.views:
-            k, r, g = fs.seen_past(y, C_k, cfg)
-            near = r <= cfg.coverage_gate
-            k, r, g = k[near], r[near], g[:, near]
-            J = np.empty((6, len(k)))
-            J[:3] = g
-            _cross(y[k].T[None], g[None], J[None, 3:])
-            rs.append(r)
-            Js.append(J)
-        return np.concatenate(rs), np.concatenate(Js, axis=1)
+        k, r, g = self.view.seen_past(y, self.C_view, cfg)
+        near = r <= cfg.coverage_gate
+        k, r, g = k[near], r[near], g[:, near]
+        J = np.empty((6, len(k)))
+        J[:3] = g
+        _cross(y[k].T[None], g[None], J[None, 3:])
+        return r, J
+
+
+def strided(points: np.ndarray, cap: int) -> np.ndarray:
+    """At most ``cap`` of ``points`` (all when ``cap`` <= 0), taken on an even stride, as float64."""
+    step = int(np.ceil(len(points) / cap)) if 0 < cap < len(points) else 1
+    return np.asarray(points[::step], dtype=np.float64)
 
 
 def huber_weight(r: np.ndarray, delta: float) -> np.ndarray:
@@ -285,10 +285,7 @@ class _NodeData:
         self.tx[:, 1:] = np.concatenate([g.p for g in valid]).T
         self.tn = np.zeros_like(self.tx)
         self.tn[:, 1:] = np.concatenate([g.q for g in valid]).T
-        picks = []
-        for g in valid:
-            step = int(np.ceil(len(g.p) / cap)) if 0 < cap < len(g.p) else 1
-            picks.append((g.p[::step], g.q[::step]))
+        picks = [(strided(g.p, cap), strided(g.q, cap)) for g in valid]
         m = max(1, max(len(p) for p, _ in picks))
         self.ph = np.zeros((len(nodes), 4, m))
         self.ph[:, 3] = 1.0
@@ -457,7 +454,7 @@ def optimize_graph(
       out of the mask).
     - Coverage (not in the paper): with ``coverage`` = (t, cv), `Coverage.residuals` at node t, weight ``cfg.w_cv``:
       the frame's points may not stand where a keyframe saw the background (a slide along a shaft moves the end
-      the frame shows beyond the end the keyframes saw). With L_FS it holds a slide from both sides.
+      the frame shows beyond the end the keyframe saw). With L_FS it holds a slide from both sides.
 
     Every residual goes through the Huber loss with ``cfg.huber_delta``; ``cfg.iterations`` re-weighted Gauss-Newton
     steps are taken (parametrisation in the module docstring). Without a fixed node the gauge is held only by the

@@ -614,29 +614,25 @@ class SurgTracker:
                                           cfg.free_space_points))
         poses = optimize_graph(nodes, graph_edges, cfg, self.sdf if use_sdf else None,
                                [0] if use_sdf else [], pairs_2d=pairs, priors=[(0, prior)], free_space=free_space,
-                               coverage=None if candidate else self._coverage(node, others, obs, cfg))
+                               coverage=None if candidate else self._coverage(node, obs, cfg))
         node.sdf = use_sdf
         return poses[0]
 
-    def _coverage(self, node: _Node, others: list, obs: Observation | None, cfg: GraphConfig) -> tuple | None:
+    def _coverage(self, node: _Node, obs: Observation | None, cfg: GraphConfig) -> tuple | None:
         """L_CV (`posture_graph.Coverage`) for a frame that came with its mask, or any with
-        ``graph.coverage_predicted``: its points against what up to ``graph.coverage_keyframes`` keyframes whose
-        masks came with them saw past: the first keyframe, which anchors the object frame (the default looks into
-        it alone: later keyframes carry the slides of their own poses), then the graph's memory keyframes nearest in
-        view. None on a frame with fewer than ``graph.coverage_min_share`` of the first keyframe's points (0 by
-        default): an object mostly hidden in the hand that holds it leaves the pose loose, and a few of its points
-        in the keyframe's free space can pull it further off."""
+        ``graph.coverage_predicted``: its points against what the first keyframe saw past, the one keyframe whose
+        mask always came with its frame and whose pose anchors the object frame (later keyframes carry the slides of
+        their own poses: looking into them too broke bronchoscope_2 and thoracoscope_2). None on a frame with fewer
+        than ``graph.coverage_min_share`` of the first keyframe's points (0 by default): an object mostly hidden in
+        the hand that holds it leaves the pose loose, and a few of its points in the keyframe's free space can pull
+        it further off."""
         if obs is None or not (obs.mask_given or cfg.coverage_predicted) or cfg.w_cv <= 0 or not self.pool.keyframes:
             return None
-        kfs: list[Keyframe] = []
-        for kf in [self.pool.keyframes[0], *(o for o in others if isinstance(o, Keyframe))]:
-            if kf.mask_given and all(kf is not k for k in kfs) and len(kfs) < cfg.coverage_keyframes:
-                kfs.append(kf)
-        points = node.grid_points.p
-        if len(points) < cfg.coverage_min_share * len(self.pool.keyframes[0].grid_points.p):
+        first, points = self.pool.keyframes[0], node.grid_points.p
+        if len(points) < cfg.coverage_min_share * len(first.grid_points.p):
             return None
-        views = [(FreeSpace(np.zeros((0, 3)), kf.mask_edge, kf.depth, kf.K), inv_T(kf.pose)) for kf in kfs]
-        return (0, Coverage.of(points, views, cfg.coverage_points)) if views else None
+        view = FreeSpace.of(np.zeros((0, 3)), first.mask_edge, first.depth, first.K, 0)
+        return 0, Coverage.of(points, view, inv_T(first.pose), cfg.coverage_points)
 
     def _field_agrees(self, node: _Node) -> bool:
         """Whether the field fits the frame at its coarse pose well enough to join the graph (L_SDF, eq. 11): the
@@ -686,7 +682,7 @@ class SurgTracker:
 
     def _add_keyframe(self, node: _Node, obs: Observation) -> None:
         kf = Keyframe(node.frame_id, node.pose, node.features, node.xyz, node.normals, node.K_grid,
-                      obs.frame.depth, obs.mask, obs.K, image=intensity(obs.frame.rgb), mask_given=obs.mask_given)
+                      obs.frame.depth, obs.mask, obs.K, image=intensity(obs.frame.rgb))
         kf.grid_points = node.grid_points  # the same grid: its points were found once, for the frame
         self.pool.add(kf)
         self._remember_points(kf, obs.mask_given)
