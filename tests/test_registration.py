@@ -430,14 +430,28 @@ def test_device_selection(monkeypatch) -> None:
     assert InstrumentSDF(SDFConfig(), np.zeros(3), 0.05).device.type == "cpu"
 
 
-def test_keep_near_drops_surfaces_away_from_observed_points():
-    from surgtrack.registration import keep_near
+def test_the_mesh_keeps_what_was_seen_and_drops_floaters_by_their_seen_area() -> None:
+    """A large closed surface nobody saw (a box wall) must not make the thin part the video showed a floater."""
+    sdf = InstrumentSDF(SDFConfig(voxel_size=0.004), np.zeros(3), 0.2)
+    g = sdf.grid
+    axes = [g.origin[k] + g.voxel * np.arange(g.shape[k]) for k in range(3)]
+    nodes = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
+    big = np.linalg.norm(nodes - [-0.04, 0.0, 0.0], axis=-1) - 0.05  # unseen
+    small = np.linalg.norm(nodes - [0.06, 0.0, 0.0], axis=-1) - 0.012  # seen all round
+    psi = np.clip(np.minimum(big, small), -sdf.cfg.truncation, sdf.cfg.truncation)
+    sdf.psi = torch.as_tensor(psi / sdf.cfg.truncation, dtype=torch.float32)
+    sdf._host = None
+    d = np.random.default_rng(0).normal(size=(2000, 3))
+    seen = np.array([0.06, 0.0, 0.0]) + 0.012 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    cap = np.array([-0.09, 0.0, 0.0]) + 0.001 * d[:5]  # a few points on the big sphere's far side
 
-    box = trimesh.creation.box(extents=(0.1, 0.1, 0.1))
-    seen = np.array([[x, y, 0.05] for x in np.linspace(-0.05, 0.05, 11) for y in np.linspace(-0.05, 0.05, 11)])
-    kept = keep_near(box, seen, 0.01)
-    assert len(kept.faces) == 2  # the top face's two triangles
-    assert np.allclose(kept.triangles_center[:, 2], 0.05)
+    whole = sdf.mesh(keep_frac=0.0)
+    assert whole.bounds[0, 0] < -0.08 and whole.bounds[1, 0] > 0.07
+    assert sdf.mesh().bounds[1, 0] < 0.02  # judged by its whole area, the small sphere (6 % of the big) is a floater
+    kept = sdf.mesh(seen=np.vstack([seen, cap]), seen_dist=0.005)
+    assert kept.bounds[1, 0] > 0.07 and kept.bounds[0, 0] > 0.04  # the small sphere, all of it
+    assert 0.8 * 4 * np.pi * 0.012**2 < kept.area < 1.2 * 4 * np.pi * 0.012**2  # the cap's few faces are a floater
+    assert len(sdf.mesh(seen=cap + [0.0, 0.0, 0.5], seen_dist=0.005).faces) == 0
 
 
 def test_a_refit_goes_on_until_the_field_converges(sphere_fit) -> None:

@@ -191,16 +191,6 @@ def _plateaued(losses: list[float], tol: float) -> bool:
     return bool(prev > 0 and (prev - last) / prev < tol)
 
 
-def keep_near(mesh: trimesh.Trimesh, points: np.ndarray, dist: float) -> trimesh.Trimesh:
-    """The faces of a mesh whose centroids lie within ``dist`` of observed points: drops the surfaces the field
-    closes where nothing was seen (box walls, the far side) and keeps the reconstruction of what the video shows."""
-    if len(mesh.faces) == 0 or len(points) == 0:
-        return mesh
-    d, _ = cKDTree(points).query(mesh.triangles_center, distance_upper_bound=dist)
-    kept = mesh.submesh([np.nonzero(np.isfinite(d))[0]], append=True)
-    return kept if isinstance(kept, trimesh.Trimesh) else trimesh.Trimesh()
-
-
 class InstrumentSDF:
     """Dense-grid signed distance field Psi of the instrument in the object frame (paper eq. 1).
 
@@ -517,19 +507,30 @@ class InstrumentSDF:
             grad[far] = out[far] / dist[far, None]
         return val, grad @ self.rotation
 
-    def mesh(self, keep_frac: float = 0.1) -> trimesh.Trimesh:
-        """Zero level set by marching cubes (object frame, metres), outward normals; connected components with less
-        than `keep_frac` of the largest component's area are dropped as floaters."""
+    def mesh(self, keep_frac: float = 0.1, seen: np.ndarray | None = None, seen_dist: float = 0.0) -> trimesh.Trimesh:
+        """Zero level set by marching cubes (object frame, metres), outward normals. With `seen` points (object
+        frame), only faces whose centroids lie within `seen_dist` of them are kept: the surfaces the field closes
+        where nothing was seen (box walls, the far side) go. A connected component whose (seen) area is less than
+        `keep_frac` of the largest's is dropped as a floater; its area counts only its seen faces, so a box wall
+        does not outweigh a thin shaft the video shows."""
         vol = self.values()
         if not (vol.min() < 0 < vol.max()):
             return trimesh.Trimesh()
         v = self.grid.voxel
         verts, faces, _, _ = measure.marching_cubes(vol, level=0.0, spacing=(v, v, v))
         m = trimesh.Trimesh((verts + self.grid.origin) @ self.rotation, faces, process=True)
-        parts = m.split(only_watertight=False)
-        if len(parts) > 1:
-            areas = np.array([p.area for p in parts])
-            m = trimesh.util.concatenate([p for p, a in zip(parts, areas, strict=True) if a >= keep_frac * areas.max()])
+        kept = np.ones(len(m.faces), dtype=bool)
+        if seen is not None and len(seen):
+            d, _ = cKDTree(seen).query(m.triangles_center, distance_upper_bound=seen_dist)
+            kept = np.isfinite(d)
+        labels = trimesh.graph.connected_component_labels(m.face_adjacency, node_count=len(m.faces))
+        area = np.bincount(labels, weights=m.area_faces * kept)
+        kept &= area[labels] >= keep_frac * area.max()
+        if not kept.any():
+            return trimesh.Trimesh()
+        if not kept.all():
+            part = m.submesh([np.nonzero(kept)[0]], append=True)
+            m = part if isinstance(part, trimesh.Trimesh) else trimesh.Trimesh()
         if len(m.faces):
             # Normals point to increasing Psi (outwards).
             c = m.triangles_center

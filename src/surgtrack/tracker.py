@@ -51,7 +51,7 @@ from .model import InstrumentModel
 from .posture_graph import Coverage, FeatureEdge, FreeSpace, GraphNode, GridPoints, optimize_graph
 from .preprocess import Observation, preprocess
 from .ransac import plausible, ransac_pose, within
-from .registration import BackgroundFitter, InstrumentSDF, keep_near
+from .registration import BackgroundFitter, InstrumentSDF
 from .tsdf import View
 
 TRACKED, LOST, RELOCALISED = "tracked", "lost", "relocalised"
@@ -264,7 +264,7 @@ class SurgTracker:
         psi.forget_rays()  # every keyframe's (tens of MB); a later fit is a new start
         self._field = psi
         self._refine_keyframes(psi)
-        mesh = keep_near(psi.mesh(), self.model_points, 2 * self.cfg.sdf.voxel_size)
+        mesh = psi.mesh(seen=self.model_points, seen_dist=2 * self.cfg.sdf.voxel_size)
         return mesh if len(mesh.faces) else None
 
     def track(self, frame: Frame, mask: np.ndarray | None = None) -> TrackResult:
