@@ -18,7 +18,7 @@ from helpers import surgtrack as run_surgtrack
 
 from surgtrack.config import TrackerConfig
 from surgtrack.geometry import transform
-from surgtrack.io import SequenceError, open_sequence, read_poses
+from surgtrack.io import SequenceError, load_mesh, open_sequence, read_poses
 from surgtrack.metrics import evaluate
 from surgtrack.model import VERSION, InstrumentModel, load_model, read_meta, save_model
 from surgtrack.tracker import SurgTracker
@@ -319,6 +319,8 @@ def test_register_then_track_another_video(synth_seq, second_video, tmp_path):
     assert meta["format"] == "surgtrack-model" and meta["version"] == VERSION and meta["sdf"]["voxel"] == 0.006
     loaded = load_model(model)
     assert len(loaded.keyframes) >= 4 and loaded.sdf is not None and loaded.mesh is not None
+    written = load_mesh(scan_dir / "mesh.ply")  # the model holds the mesh of what the scan saw, as the scan wrote it
+    np.testing.assert_allclose(np.sort(loaded.mesh.vertices, axis=0), np.sort(written.vertices, axis=0), atol=1e-5)
     assert not np.allclose(loaded.K, open_sequence(second_video)[0].K)  # another camera
 
     out = tmp_path / "out"

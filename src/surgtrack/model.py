@@ -18,7 +18,8 @@ and arrays in NumPy's ``.npy`` format (read without pickle). Format version 2:
                                        (the box's axes as rows; version 1 files have none: identity) (truncation in the
                                        sdf config); relative rounding below 2^-11, 5 um at twice the truncation
     sdf/weight.npy                     float32 (nx, ny, nz): TSDF fusion weights (sdf/ is absent when sdf is null)
-    mesh/vertices.npy                  float32 (V, 3), object frame, metres (marching cubes of Psi)
+    mesh/vertices.npy                  float32 (V, 3), object frame, metres (marching cubes of Psi, kept to the
+                                       surface the scan saw, as OUT/mesh.ply)
     mesh/faces.npy                     int32 (F, 3)
     keyframes/NNN/features_uv.npy      float32 (N, 2) pixel coordinates
     keyframes/NNN/features_desc.npy    (N, D) descriptors, float32 (SIFT, XFeat) or uint8 (ORB)
@@ -78,7 +79,7 @@ class InstrumentModel:
 
     @classmethod
     def from_tracker(cls, tracker: Any, info: dict | None = None) -> InstrumentModel:
-        """The model a tracker has built: its memory pool, its SDF and the mesh of that SDF.
+        """The model a tracker has built: its memory pool, its SDF and that SDF's mesh of what the scan saw.
 
         Call it after ``tracker.mesh()`` (``track_sequence`` does): the SDF is then the tracker's final fit on every
         keyframe; before, it is the newest completed background fit. Keyframe ids get the ``model:`` prefix (once).
@@ -94,7 +95,7 @@ class InstrumentModel:
             sdf = fitter.latest()
         if sdf is not None and not sdf.fitted:
             sdf = None
-        mesh = sdf.mesh() if sdf is not None else None
+        mesh = tracker.surface(sdf) if sdf is not None else None
         return cls(keyframes, sdf, np.array(keyframes[0].K, dtype=np.float64), tracker.cfg.to_dict(), mesh,
                    dict(info or {}))
 
