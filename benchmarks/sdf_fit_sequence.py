@@ -50,7 +50,7 @@ def main() -> None:
     sdf.init_tsdf(views)
     t_init = time.perf_counter() - t
     report = sdf.fit(views)
-    mesh = sdf.mesh(seen=tracker.model_points, seen_dist=2 * cfg.sdf.voxel_size)
+    mesh = tracker.surface(sdf)
     gt0 = seq.gt_poses()[first.id]
     cd = chamfer_cm(mesh, inv_T(gt0) @ pose0, seq.gt_visible_points())
     print(f"{seq.root.name}: {len(seq)} frames tracked in {t_track:.1f} s (not counted), {len(views)} keyframes, "

@@ -166,6 +166,7 @@ class SDFConfig:
     refine_trans: float = 0.005  # m, the most a refined keyframe pose moves from its tracked one (per axis)
     refine_rot_deg: float = 3.0  # degrees, the most it turns (per axis of the rotation vector)
     refine_lr: float = 0.02  # Adam step of the pose parameters (tanh space: a fraction of the bound)
+    mesh_seen: float = 1.0  # voxels: the mesh keeps the faces this close to the model points (what was seen)
 
 
 @dataclass

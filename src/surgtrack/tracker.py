@@ -268,9 +268,9 @@ class SurgTracker:
         return mesh if len(mesh.faces) else None
 
     def surface(self, psi: InstrumentSDF) -> trimesh.Trimesh:
-        """Marching cubes of ``psi`` kept to what the keyframes saw: faces within two voxels of the model points,
-        floaters judged by their seen area (`InstrumentSDF.mesh`)."""
-        return psi.mesh(seen=self.model_points, seen_dist=2 * self.cfg.sdf.voxel_size)
+        """Marching cubes of ``psi`` kept to what the keyframes saw: faces within ``sdf.mesh_seen`` voxels of the
+        model points, floaters judged by their seen area (`InstrumentSDF.mesh`)."""
+        return psi.mesh(seen=self.model_points, seen_dist=self.cfg.sdf.mesh_seen * self.cfg.sdf.voxel_size)
 
     def track(self, frame: Frame, mask: np.ndarray | None = None) -> TrackResult:
         """One tracking step (Stage 2): preprocess, coarse pose (eq. 5), posture graph (eqs. 7-11), memory (eq. 6)."""
