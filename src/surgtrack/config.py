@@ -167,6 +167,7 @@ class SDFConfig:
     refine_rot_deg: float = 3.0  # degrees, the most it turns (per axis of the rotation vector)
     refine_lr: float = 0.02  # Adam step of the pose parameters (tanh space: a fraction of the bound)
     mesh_seen: float = 1.0  # voxels: the mesh keeps the faces this close to the model points (what was seen)
+    mesh_floater: float = 0.0  # a mesh piece whose seen area is under this share of the largest's is dropped
 
 
 @dataclass

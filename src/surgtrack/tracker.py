@@ -269,8 +269,9 @@ class SurgTracker:
 
     def surface(self, psi: InstrumentSDF) -> trimesh.Trimesh:
         """Marching cubes of ``psi`` kept to what the keyframes saw: faces within ``sdf.mesh_seen`` voxels of the
-        model points, floaters judged by their seen area (`InstrumentSDF.mesh`)."""
-        return psi.mesh(seen=self.model_points, seen_dist=self.cfg.sdf.mesh_seen * self.cfg.sdf.voxel_size)
+        model points, pieces under ``sdf.mesh_floater`` of the largest's seen area dropped (`InstrumentSDF.mesh`)."""
+        c = self.cfg.sdf
+        return psi.mesh(keep_frac=c.mesh_floater, seen=self.model_points, seen_dist=c.mesh_seen * c.voxel_size)
 
     def track(self, frame: Frame, mask: np.ndarray | None = None) -> TrackResult:
         """One tracking step (Stage 2): preprocess, coarse pose (eq. 5), posture graph (eqs. 7-11), memory (eq. 6)."""
