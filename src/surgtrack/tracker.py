@@ -637,8 +637,7 @@ class SurgTracker:
         first, points = self.pool.keyframes[0], node.grid_points.p
         if len(points) < cfg.coverage_min_share * len(first.grid_points.p):
             return None
-        view = FreeSpace.of(np.zeros((0, 3)), first.mask_edge, first.depth, first.K, 0)
-        return 0, Coverage.of(points, view, inv_T(first.pose), cfg.coverage_points)
+        return 0, Coverage.of(points, first.free_space, inv_T(first.pose), cfg.coverage_points)
 
     def _field_agrees(self, node: _Node) -> bool:
         """Whether the field fits the frame at its coarse pose well enough to join the graph (L_SDF, eq. 11): the
