@@ -486,6 +486,9 @@ def optimize_graph(
         ph, pmask = nd_data.ph, nd_data.mask
     if use_2d:
         proj = _Projective(nd_data, nodes, pairs, cfg)
+    one_node_terms = [(t, term, w) for (t, term), w in ((free_space or (0, None), cfg.w_fs),
+                                                        (coverage or (0, None), cfg.w_cv))
+                      if term is not None and w > 0 and free[t]]
 
     for _ in range(cfg.iterations):
         ne = _Normal(n)
@@ -520,15 +523,9 @@ def optimize_graph(
             _cross(ys, gr, Js[:, 3:])
             ne.add(sdf_ids, Js, r, cfg.w_s * huber_weight(r, hd) * good)
 
-        if free_space is not None and free[free_space[0]] and cfg.w_fs > 0:
-            t, fs = free_space
-            r, J = fs.residuals(C[t], cfg)
-            ne.add(np.array([t]), J[None], r[None], (cfg.w_fs * huber_weight(r, hd))[None])
-
-        if coverage is not None and free[coverage[0]] and cfg.w_cv > 0:
-            t, cv = coverage
-            r, J = cv.residuals(C[t], cfg)
-            ne.add(np.array([t]), J[None], r[None], (cfg.w_cv * huber_weight(r, hd))[None])
+        for t, term, w in one_node_terms:  # L_FS, then L_CV: residuals of one node's pose
+            r, J = term.residuals(C[t], cfg)
+            ne.add(np.array([t]), J[None], r[None], (w * huber_weight(r, hd))[None])
 
         for t, prior in priors:
             if free[t] and cfg.w_m > 0:
