@@ -35,7 +35,7 @@ def sequence_cd(path: Path, seed: int, seen: list[float], keep: list[float]) -> 
     for i in range(1, len(seq)):
         tracker.track(seq[i], seq[i].mask)
     tracker.mesh()  # the final field: the latest one lengthened along the shaft and refitted on every keyframe
-    psi = tracker._field
+    psi = tracker.fitted_field()
     to_gt = inv_T(seq.gt_poses()[first.id]) @ pose0
     surface = seq.gt_visible_points()
     out = {}

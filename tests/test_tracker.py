@@ -203,9 +203,12 @@ def test_the_run_summary_counts_frames_and_averages_the_tracked_frames_stage_tim
     assert summary.to_dict()["stage_ms"] == {"graph": 20.0, "ransac": 2.0}
 
 
-def test_the_end_of_run_field_keeps_no_rays(synth_seq):
+def test_the_end_of_run_mesh_is_the_final_field_kept_to_what_was_seen(synth_seq):
     """The end-of-run mesh refits the field on every keyframe; the rays gathered for it (about 1 MB a keyframe)
-    are not kept after it."""
+    are not kept after it. The mesh is that field's surface within ``sdf.mesh_seen`` voxels of the model points,
+    pieces under ``sdf.mesh_floater`` of the largest's seen area dropped."""
+    import trimesh
+
     seq = open_sequence(synth_seq)
     cfg = TrackerConfig()
     cfg.sdf.background = False
@@ -213,7 +216,13 @@ def test_the_end_of_run_field_keeps_no_rays(synth_seq):
     assert tracker._field._rays  # the in-line refits keep their views' rays
     mesh = tracker.mesh()
     assert mesh is not None and len(mesh.faces) > 0
-    assert not tracker._field._rays
+    psi = tracker.fitted_field()
+    assert psi is tracker._field and not psi._rays
+    assert tracker.surface(psi).area == pytest.approx(mesh.area)
+    tracker.cfg.sdf.mesh_seen = 20.0  # the closed surface round what no keyframe saw comes back
+    assert tracker.surface(psi).area > 1.2 * mesh.area
+    tracker.cfg.sdf.mesh_floater = 1.0  # the piece with the most seen area only
+    assert trimesh.graph.connected_component_labels(tracker.surface(psi).face_adjacency).max() == 0
 
 
 def test_keyframe_poses_refined_with_the_field_stay_within_bounds(synth_seq, tmp_path):

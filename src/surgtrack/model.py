@@ -88,13 +88,7 @@ class InstrumentModel:
                      for kf in tracker.pool.keyframes]
         if not keyframes:
             raise ValueError("the tracker has no keyframes: register a first frame and track before saving a model")
-        sdf = getattr(tracker, "_field", None)
-        fitter = getattr(tracker, "fitter", None)
-        if (sdf is None or not sdf.fitted) and fitter is not None:
-            fitter.wait()
-            sdf = fitter.latest()
-        if sdf is not None and not sdf.fitted:
-            sdf = None
+        sdf = tracker.fitted_field()
         mesh = tracker.surface(sdf) if sdf is not None else None
         return cls(keyframes, sdf, np.array(keyframes[0].K, dtype=np.float64), tracker.cfg.to_dict(), mesh,
                    dict(info or {}))

@@ -267,6 +267,15 @@ class SurgTracker:
         mesh = self.surface(psi)
         return mesh if len(mesh.faces) else None
 
+    def fitted_field(self) -> InstrumentSDF | None:
+        """The newest fitted field: after `mesh()` the final one, fitted on every keyframe; before it, the newest
+        background fit (waiting for the one in progress) or the field refitted in line; None when none was fitted."""
+        psi = self._field
+        if (psi is None or not psi.fitted) and self.fitter is not None:
+            self.fitter.wait()
+            psi = self.fitter.latest()
+        return psi if psi is not None and psi.fitted else None
+
     def surface(self, psi: InstrumentSDF) -> trimesh.Trimesh:
         """Marching cubes of ``psi`` kept to what the keyframes saw: faces within ``sdf.mesh_seen`` voxels of the
         model points, pieces under ``sdf.mesh_floater`` of the largest's seen area dropped (`InstrumentSDF.mesh`)."""
