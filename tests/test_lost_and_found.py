@@ -141,6 +141,33 @@ def test_a_candidate_keeps_where_it_puts_the_shaft(synth_seq, monkeypatch):
     assert np.linalg.norm(error[:3, 3]) < 0.005 and rotation_angle_deg(error[:3, :3]) < 5
 
 
+def test_a_candidate_the_graph_pulls_off_the_model_is_taken_as_found(synth_seq, monkeypatch):
+    """The posture graph refines each candidate against the frames before the loss and the keyframes; when that
+    leaves the frame further from the model (median distance) than the candidate did, as stale neighbours can,
+    the candidate is taken as it was found instead of being refused for the graph's fit. A refinement that
+    brings the frame nearer the model is taken."""
+    seq = open_sequence(synth_seq)
+    cfg = _relocalising_every_frame()
+    frame = seq[4]
+    across = make_T(np.eye(3), np.array([0.02, 0.0, 0.0]))  # 2 cm off, in the camera frame
+
+    def relocalise(offset: np.ndarray, pull: bool) -> tuple[str, np.ndarray | None]:
+        tracker, align = _lost_after(seq, cfg)
+        true = seq.gt_poses()[frame.id] @ inv_T(align)
+        monkeypatch.setattr(tracker, "_candidates", lambda obs, feats, last: [(offset @ true, [], 0)])
+        if pull:
+            monkeypatch.setattr(tracker, "_optimise", lambda node, edges, candidate=False, obs=None: across @ true)
+        result = tracker.track(frame, frame.mask)
+        monkeypatch.undo()
+        return result.status, None if result.pose is None else np.linalg.norm((inv_T(true) @ result.pose)[:3, 3])
+
+    status, error = relocalise(np.eye(4), pull=True)
+    assert status == RELOCALISED and error < 1e-6  # the candidate as found, not the graph's pose 2 cm off
+    nudged = make_T(np.eye(3), np.array([0.0, 0.004, 0.0]))
+    status, error = relocalise(nudged, pull=False)
+    assert status == RELOCALISED and error < 0.002  # the graph's refinement, nearer the truth than the candidate
+
+
 def test_a_relocalisation_further_than_the_instrument_can_have_moved_is_refused(synth_seq, monkeypatch):
     """A candidate is taken only within ``failure.relocalise_max_speed`` times the frames since the last tracked
     one, and never further than ``failure.relocalise_max_reach``: here the true pose, 27 frames after the loss, taken
