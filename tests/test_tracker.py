@@ -9,6 +9,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
+import trimesh
 from helpers import tracked
 
 from surgtrack.config import TrackerConfig
@@ -207,8 +208,6 @@ def test_the_end_of_run_mesh_is_the_final_field_kept_to_what_was_seen(synth_seq)
     """The end-of-run mesh refits the field on every keyframe; the rays gathered for it (about 1 MB a keyframe)
     are not kept after it. The mesh is that field's surface within ``sdf.mesh_seen`` voxels of the model points,
     pieces under ``sdf.mesh_floater`` of the largest's seen area dropped."""
-    import trimesh
-
     seq = open_sequence(synth_seq)
     cfg = TrackerConfig()
     cfg.sdf.background = False

@@ -486,9 +486,10 @@ def optimize_graph(
         ph, pmask = nd_data.ph, nd_data.mask
     if use_2d:
         proj = _Projective(nd_data, nodes, pairs, cfg)
-    one_node_terms = [(t, term, w) for (t, term), w in ((free_space or (0, None), cfg.w_fs),
-                                                        (coverage or (0, None), cfg.w_cv))
-                      if term is not None and w > 0 and free[t]]
+    one_node_terms = []  # L_FS, then L_CV: (node, term, weight), each on one node's pose
+    for pair, w in ((free_space, cfg.w_fs), (coverage, cfg.w_cv)):
+        if pair is not None and w > 0 and free[pair[0]]:
+            one_node_terms.append((*pair, w))
 
     for _ in range(cfg.iterations):
         ne = _Normal(n)
@@ -523,7 +524,7 @@ def optimize_graph(
             _cross(ys, gr, Js[:, 3:])
             ne.add(sdf_ids, Js, r, cfg.w_s * huber_weight(r, hd) * good)
 
-        for t, term, w in one_node_terms:  # L_FS, then L_CV: residuals of one node's pose
+        for t, term, w in one_node_terms:
             r, J = term.residuals(C[t], cfg)
             ne.add(np.array([t]), J[None], r[None], (w * huber_weight(r, hd))[None])
 

@@ -530,18 +530,18 @@ class SurgTracker:
         the directions the frame leaves free (a slide along a shaft, a turn about it stay where the candidate put
         them; a prior at ``last`` would pull them back to where the instrument was before the loss), its appearance
         not yet scored; the candidate as found when the graph leaves the frame's median point further from the model
-        (the frames before the loss and the keyframes can pull a true pose off it, as on a bottle nearly hidden in
-        the hand that holds it). None when its origin moved further than the physical bound allows over the frames since
-        ``last`` (a look-alike elsewhere in the image), or when its median point lies further than
+        (L_FS, the frames before the loss and the memory keyframes can each pull a true pose off it, as on a bottle
+        nearly hidden in the hand that holds it). None when its origin moved further than the physical bound allows
+        over the frames since ``last`` (a look-alike elsewhere in the image), or when its median point lies further than
         ``failure.relocalise_max_fit`` from the model (median: parts of the instrument the model has not seen yet do
         not count against it): a wrong pose taken here would be tracked on, and its keyframes would spoil the
         model."""
         node = self._node(obs, feats, orthonormalize(pose))
-        found = self._model_distances(node)
+        start, found = node.pose, self._model_distances(node)
         node.pose = orthonormalize(self._optimise(node, list(edges), candidate=True, obs=obs))
         dist = self._model_distances(node)
         if np.median(found) < np.median(dist):  # the graph pulled it off the model: the candidate as found
-            node.pose, dist = orthonormalize(pose), found
+            node.pose, dist = start, found
         motion = inv_T(last) @ node.pose
         if np.linalg.norm(motion[:3, 3]) > self._reach(obs.frame.index):
             return None
