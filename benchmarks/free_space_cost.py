@@ -39,8 +39,8 @@ def recorded_calls(seq_root: Path, term: type) -> tuple[list, int, float]:
 
 
 def edges(t: FreeSpace | Coverage) -> list[MaskEdge]:
-    """The mask edges a call uses: the frame's for L_FS, the keyframes' for L_CV."""
-    return [t.edge] if isinstance(t, FreeSpace) else [t.view.edge]
+    """The mask edge a call uses: the frame's for L_FS, the keyframe's for L_CV."""
+    return [t.view.edge]
 
 
 def main() -> None:

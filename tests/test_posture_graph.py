@@ -7,7 +7,7 @@ import numpy as np
 
 from surgtrack.config import GraphConfig
 from surgtrack.geometry import inv_T, make_T, rotation_angle_deg, so3_exp, transform
-from surgtrack.posture_graph import Coverage, FeatureEdge, FreeSpace, GraphNode, default_pairs, optimize_graph
+from surgtrack.posture_graph import Coverage, FeatureEdge, FreeSpace, GraphNode, MaskView, default_pairs, optimize_graph
 from surgtrack.preprocess import MaskEdge
 
 HALF = np.array([0.04, 0.025, 0.015])  # half-extents of the box object, m
@@ -367,7 +367,7 @@ def test_coverage_pulls_a_slid_pose_back_into_what_the_keyframe_saw():
     truth, nodes, fs = face_on_free_space(occluded=False)
     xyz = nodes[0].xyz
     frame_points = xyz[xyz[..., 2] > 0]
-    cv = Coverage.of(frame_points, fs, inv_T(truth), 1000)
+    cv = Coverage.of(frame_points, fs.view, inv_T(truth), 1000)
     assert len(cv.points) <= 1000
     assert len(cv.residuals(inv_T(truth), GraphConfig())[0]) == 0  # at the truth every point lies in the mask
     r, J = cv.residuals(inv_T(nodes[0].pose), GraphConfig())
@@ -378,7 +378,7 @@ def test_coverage_pulls_a_slid_pose_back_into_what_the_keyframe_saw():
     rot, trans = pose_error(out[0], truth)
     # The frame's points lie on its grid, 4 px apart at 640 px (2 mm here): the outermost stops within the margin.
     assert trans < 0.0035 and rot < 0.3
-    hidden = FreeSpace(fs.points, fs.edge, np.where(fs.edge.mask, fs.depth, 0.2).astype(np.float32), fs.K)
+    hidden = MaskView(fs.view.edge, np.where(fs.view.edge.mask, fs.view.depth, 0.2).astype(np.float32), fs.view.K)
     cv = Coverage.of(frame_points, hidden, inv_T(truth), 1000)
     kept = optimize_graph(nodes, [], GraphConfig(w_fs=0.0, w_cv=1.0, iterations=15), coverage=(0, cv))
     assert np.linalg.norm(kept[0][:3, 3] - truth[:3, 3]) > 0.008

@@ -443,7 +443,7 @@ def test_coverage_looks_into_the_first_keyframe_on_frames_that_came_with_their_m
     assert tracker.track(seq[1], seq[1].mask).status == "tracked"
     assert seen and all(cv is not None and cv[0] == 0 for cv in seen)
     cv = seen[-1][1]
-    assert cv.view is first.free_space and np.allclose(cv.C_view @ first.pose, np.eye(4))
+    assert cv.view is first.view and np.allclose(cv.C_view @ first.pose, np.eye(4))
     seen.clear()
     assert tracker.track(seq[2], None).status == "tracked"
     assert seen and all(cv is None for cv in seen)

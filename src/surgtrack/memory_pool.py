@@ -15,7 +15,7 @@ import numpy as np
 from .config import PoolConfig
 from .features import Features
 from .geometry import rotation_gaps_deg
-from .posture_graph import FreeSpace, GridPoints
+from .posture_graph import GridPoints, MaskView
 from .preprocess import MaskEdge
 
 
@@ -45,10 +45,10 @@ class Keyframe:
         return GridPoints.of(self.xyz, self.normals)
 
     @cached_property
-    def free_space(self) -> FreeSpace:
-        """What it saw past (`posture_graph.FreeSpace`: its mask, the mask's edge, its depth; no points of its own),
-        built once: L_CV reads the first keyframe's on every frame."""
-        return FreeSpace.of(np.zeros((0, 3)), MaskEdge.of(self.mask), self.depth, self.K, 0)
+    def view(self) -> MaskView:
+        """What it saw past (`posture_graph.MaskView`: its mask, the mask's edge, its depth), built once: L_CV reads
+        the first keyframe's on every frame."""
+        return MaskView.of(MaskEdge.of(self.mask), self.depth, self.K)
 
     @cached_property
     def area(self) -> int:

@@ -91,21 +91,18 @@ class FeatureEdge:
     p_j: np.ndarray  # (M, 3) in node j's camera frame
 
 
-@dataclass
-class FreeSpace:
-    """What the current frame saw past the instrument, for L_FS: the model's points (object frame), the frame's
-    instrument mask with its edge, and its depth."""
+@dataclass(frozen=True)
+class MaskView:
+    """A frame's instrument mask with its edge (`preprocess.MaskEdge`), its depth and intrinsics: what it saw past,
+    for L_FS (the current frame's) and L_CV (a keyframe's)."""
 
-    points: np.ndarray  # (N, 3) object frame
     edge: MaskEdge  # the frame's mask and its edge pixels
     depth: np.ndarray  # (H, W) metres, 0 = invalid
     K: np.ndarray  # 3x3
 
     @classmethod
-    def of(cls, points: np.ndarray, edge: MaskEdge, depth: np.ndarray, K: np.ndarray, cap: int) -> FreeSpace:
-        """At most ``cap`` of ``points`` (strided) against the frame's mask (`preprocess.MaskEdge`) and its
-        ``depth``."""
-        return cls(strided(points, cap), edge, np.asarray(depth, dtype=np.float32), np.asarray(K, dtype=np.float64))
+    def of(cls, edge: MaskEdge, depth: np.ndarray, K: np.ndarray) -> MaskView:
+        return cls(edge, np.asarray(depth, dtype=np.float32), np.asarray(K, dtype=np.float64))
 
     def seen_past(self, y: np.ndarray, C: np.ndarray, cfg: GraphConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Which of the object-frame points ``y`` this view, at the camera-in-object pose C, saw past: their rows k,
@@ -133,11 +130,26 @@ class FreeSpace:
         g = C[:3, :3] @ (np.stack([gu * fx, gv * fy, -(gu * (u - cx) + gv * (v - cy))]) * (s / z))  # (3, M)
         return k, (dist[free] - cfg.free_space_margin) * s, g
 
+
+@dataclass(frozen=True)
+class FreeSpace:
+    """What the current frame saw past the instrument, for L_FS: the model's points (object frame) and the frame's
+    `MaskView`."""
+
+    points: np.ndarray  # (N, 3) object frame
+    view: MaskView  # the current frame's mask, depth and intrinsics
+
+    @classmethod
+    def of(cls, points: np.ndarray, edge: MaskEdge, depth: np.ndarray, K: np.ndarray, cap: int) -> FreeSpace:
+        """At most ``cap`` of ``points`` (strided) against the frame's mask (`preprocess.MaskEdge`) and its
+        ``depth``."""
+        return cls(strided(points, cap), MaskView.of(edge, depth, K))
+
     def residuals(self, C: np.ndarray, cfg: GraphConfig) -> tuple[np.ndarray, np.ndarray]:
         """L_FS at the camera-in-object pose C: residuals r (M,) and Jacobians (6, M) on the left increment delta,
-        for the M model points this frame saw past (`seen_past`; every other point's residual is 0). The increment
-        moves a model point y by -(rho + phi x y) relative to the camera, so dr/d delta = [-g, g x y]."""
-        k, r, g = self.seen_past(self.points, C, cfg)
+        for the M model points this frame saw past (`MaskView.seen_past`; every other point's residual is 0). The
+        increment moves a model point y by -(rho + phi x y) relative to the camera, so dr/d delta = [-g, g x y]."""
+        k, r, g = self.view.seen_past(self.points, C, cfg)
         J = np.empty((6, len(k)))
         J[:3] = -g
         _cross(g[None], self.points[k].T[None], J[None, 3:])
@@ -146,23 +158,23 @@ class FreeSpace:
 
 @dataclass(frozen=True)
 class Coverage:
-    """What a keyframe saw past, for L_CV: the current frame's points (camera frame), and the keyframe's free space
-    (`FreeSpace`, no points of its own) with its camera-in-object pose. The counterpart of L_FS: that keeps the model
-    out of what the frame saw past, this keeps the frame's points out of what the keyframe saw past, so a shaft slid
-    along itself is held by whichever of its ends the keyframe saw with background beyond it."""
+    """What a keyframe saw past, for L_CV: the current frame's points (camera frame), and the keyframe's `MaskView`
+    with its camera-in-object pose. The counterpart of L_FS: that keeps the model out of what the frame saw past,
+    this keeps the frame's points out of what the keyframe saw past, so a shaft slid along itself is held by
+    whichever of its ends the keyframe saw with background beyond it."""
 
     points: np.ndarray  # (N, 3) current camera frame
-    view: FreeSpace  # the keyframe's mask, depth and intrinsics
+    view: MaskView  # the keyframe's mask, depth and intrinsics
     C_view: np.ndarray  # 4x4 the keyframe's camera-in-object pose
 
     @classmethod
-    def of(cls, points: np.ndarray, view: FreeSpace, C_view: np.ndarray, cap: int) -> Coverage:
+    def of(cls, points: np.ndarray, view: MaskView, C_view: np.ndarray, cap: int) -> Coverage:
         """At most ``cap`` of the frame's ``points`` (strided) against the keyframe's ``view`` at ``C_view``."""
         return cls(strided(points, cap), view, np.asarray(C_view, dtype=np.float64))
 
     def residuals(self, C: np.ndarray, cfg: GraphConfig) -> tuple[np.ndarray, np.ndarray]:
         """L_CV at the current frame's camera-in-object pose C: residuals r (M,) and Jacobians (6, M) on the left
-        increment delta, for the M points y = C x the keyframe saw past (`FreeSpace.seen_past`) by at most
+        increment delta, for the M points y = C x the keyframe saw past (`MaskView.seen_past`) by at most
         ``cfg.coverage_gate``: a point further in stands there because the pose is wrong across the board, not
         slid, and pulling it in would not mend that. The increment moves y by rho + phi x y, so
         dr/d delta = [g, y x g]."""

@@ -538,10 +538,11 @@ class SurgTracker:
         model."""
         node = self._node(obs, feats, orthonormalize(pose))
         start, found = node.pose, self._model_distances(node)
+        cached = node.distances
         node.pose = orthonormalize(self._optimise(node, list(edges), candidate=True, obs=obs))
         dist = self._model_distances(node)
-        if np.median(found) < np.median(dist):  # the graph pulled it off the model: the candidate as found
-            node.pose, dist = start, found
+        if np.median(found) < np.median(dist):  # the graph pulled it off the model: the node as it was found
+            node.pose, node.distances, node.sdf, dist = start, cached, False, found
         motion = inv_T(last) @ node.pose
         if np.linalg.norm(motion[:3, 3]) > self._reach(obs.frame.index):
             return None
@@ -651,7 +652,7 @@ class SurgTracker:
         first, points = self.pool.keyframes[0], node.grid_points.p
         if len(points) < cfg.coverage_min_share * len(first.grid_points.p):
             return None
-        return 0, Coverage.of(points, first.free_space, inv_T(first.pose), cfg.coverage_points)
+        return 0, Coverage.of(points, first.view, inv_T(first.pose), cfg.coverage_points)
 
     def _field_agrees(self, node: _Node) -> bool:
         """Whether the field fits the frame at its coarse pose well enough to join the graph (L_SDF, eq. 11): the
