@@ -1,10 +1,11 @@
 """Chamfer distance of the end-of-run mesh for each `seen_dist` and `keep_frac` of `InstrumentSDF.mesh`.
 
-Tracks each sequence under DATA with its per-frame masks and the default config (`--seed` S), lets
-`SurgTracker.mesh()` make the final field as a run does, then meshes that one field at every setting and scores each
-mesh as `surgtrack eval` does (DESIGN.md section 4). The field is the same for every setting of a sequence, so only
-the setting differs within a run; the field itself depends on the background fit's timing (what share of the cores
-it gets), and a sequence's CD can move by a few tenths of a centimetre between runs: compare settings within one.
+Tracks each sequence under DATA with its per-frame masks and the default config (`--seed` S) as `surgtrack track`
+does (`track_sequence`, whose end-of-run mesh makes the final field), then meshes that one field at every setting
+and scores each mesh as `surgtrack eval` does (DESIGN.md section 4). The field is the same for every setting of a
+sequence, so only the setting differs within a run; the field itself depends on the background fit's timing (what
+share of the cores it gets), and a sequence's CD can move by a few tenths of a centimetre between runs: compare
+settings within one.
 
     .venv/bin/python benchmarks/mesh_settings.py DATA [--seed 0] [--seen 1 1.5 2 3] [--keep 0 0.05 0.1 0.2]
 
@@ -14,14 +15,16 @@ DATA is a folder of rendered sequences (e.g. the instrument suite's `data/`). `-
 from __future__ import annotations
 
 import argparse
+import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from surgtrack.config import TrackerConfig
 from surgtrack.geometry import inv_T
-from surgtrack.io import open_sequence
+from surgtrack.io import open_sequence, read_poses
 from surgtrack.metrics import chamfer_cm
+from surgtrack.pipeline import track_sequence
 from surgtrack.tracker import SurgTracker
 
 
@@ -30,13 +33,11 @@ def sequence_cd(path: Path, seed: int, seen: list[float], keep: list[float]) -> 
     seq = open_sequence(path)
     cfg = TrackerConfig.from_dict({"seed": seed})
     tracker = SurgTracker(cfg)
-    first = seq[0]
-    pose0 = tracker.register(first, first.mask)
-    for i in range(1, len(seq)):
-        tracker.track(seq[i], seq[i].mask)
-    tracker.mesh()  # the final field: the latest one lengthened along the shaft and refitted on every keyframe
-    psi = tracker.fitted_field()
-    to_gt = inv_T(seq.gt_poses()[first.id]) @ pose0
+    with tempfile.TemporaryDirectory() as out:  # the run as `surgtrack track` makes it, its mesh the final field's
+        track_sequence(seq, out, cfg, tracker=tracker)
+        pose0 = read_poses(Path(out) / "ob_in_cam")[seq.ids[0]]
+    psi = tracker.fitted_field()  # the latest field lengthened along the shaft and refitted on every keyframe
+    to_gt = inv_T(seq.gt_poses()[seq.ids[0]]) @ pose0
     surface = seq.gt_visible_points()
     out = {}
     for s in seen:
