@@ -131,6 +131,8 @@ class FailureConfig:
     max_seen_past: float = 0.6  # share of the silhouette (1.0: off)
     seen_past_frames: int = 3
     seen_past_given: bool = True  # also on frames that came with their mask (False: frames without a mask only)
+    slide_step: float = 0.01  # m: the first pose against a registered model, found by geometry alone, is slid along
+    # the model's long axis in these steps to where its silhouette best fits the first mask (0: off)
 
 
 @dataclass

@@ -240,13 +240,29 @@ class SurgTracker:
             found = global_register(obs.points()[0], self.model_points, seeds=[self.cfg.seed])
             if not found:
                 raise ValueError(f"frame {obs.frame.id}: too few instrument points to find the model")
-            pose, edges = found[0][0], []
+            pose, edges = self._slid_to_silhouette(found[0][0], obs), []
         node = self._node(obs, feats, orthonormalize(pose))
         node.pose = orthonormalize(self._optimise(node, edges, obs=obs))
         if self._confidence(node) < self.cfg.failure.min_global_overlap:
             raise ValueError(f"frame {obs.frame.id}: the model's instrument was not found inside the first mask")
         self.recent.append(node)
         return node.pose
+
+    def _slid_to_silhouette(self, pose: np.ndarray, obs: Observation) -> np.ndarray:
+        """``pose`` slid along the model's long axis, in ``failure.slide_step`` steps over the model's length either
+        way, to where the model's silhouette agrees best with the frame's mask (`masking.silhouette_iou`; the least
+        slide among equals). A frame that shows a bare stretch of shaft fits the model's points equally well
+        anywhere along it, but at a wrong slide the model's tip or handle shows where the mask has none."""
+        step = self.cfg.failure.slide_step
+        if step <= 0:
+            return pose
+        _, axis, _ = long_axis(self.model_points)
+        along = self.model_points @ axis
+        n = int(np.ceil((along.max() - along.min()) / step))
+        slides = sorted(np.arange(-n, n + 1) * step, key=abs)
+        poses = [pose @ make_T(np.eye(3), d * axis) for d in slides]
+        ious = [silhouette_iou(self.model_points, p, obs.K, obs.mask) for p in poses]
+        return poses[int(np.argmax(ious))]
 
     def mesh(self) -> trimesh.Trimesh | None:
         """The reconstructed instrument (object frame, metres): the latest field, its box lengthened along the shaft
