@@ -102,6 +102,7 @@ class MaskView:
 
     @classmethod
     def of(cls, edge: MaskEdge, depth: np.ndarray, K: np.ndarray) -> MaskView:
+        """The view of a frame's mask edge, its depth (as float32) and intrinsics (as float64)."""
         return cls(edge, np.asarray(depth, dtype=np.float32), np.asarray(K, dtype=np.float64))
 
     def seen_past(self, y: np.ndarray, C: np.ndarray, cfg: GraphConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

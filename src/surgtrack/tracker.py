@@ -553,8 +553,8 @@ class SurgTracker:
         not count against it): a wrong pose taken here would be tracked on, and its keyframes would spoil the
         model."""
         node = self._node(obs, feats, orthonormalize(pose))
-        start, found = node.pose, self._model_distances(node)
-        cached = node.distances
+        found = self._model_distances(node)
+        start, cached = node.pose, node.distances
         node.pose = orthonormalize(self._optimise(node, list(edges), candidate=True, obs=obs))
         dist = self._model_distances(node)
         if np.median(found) < np.median(dist):  # the graph pulled it off the model: the node as it was found
