@@ -20,7 +20,7 @@ from surgtrack.masking import render_depth
 from surgtrack.metrics import auc, evaluate
 from surgtrack.pipeline import track_sequence
 from surgtrack.synth import SynthSpec, render_sequence
-from surgtrack.tracker import LOST, RELOCALISED, SurgTracker
+from surgtrack.tracker import HIDDEN, LOST, NO_POSE, NOT_TRIED, RELOCALISED, SEEN_PAST, SurgTracker
 
 
 @pytest.fixture(scope="module")
@@ -36,11 +36,16 @@ def test_full_occlusion_is_lost_then_relocalised(occluded_seq, tmp_path):
     cfg = TrackerConfig()
     cfg.sdf.enabled = False
     track_sequence(seq, tmp_path, cfg)
-    status = [json.loads(x)["status"] for x in (tmp_path / "track.jsonl").read_text().splitlines()]
+    lines = [json.loads(x) for x in (tmp_path / "track.jsonl").read_text().splitlines()]
+    status = [x["status"] for x in lines]
     visible = np.array([seq[i].mask.sum() for i in range(len(seq))])
     hidden = np.nonzero(visible == 0)[0]
     assert len(hidden) >= 10
     assert all(status[i] == "lost" for i in hidden)  # never a made-up pose while nothing is seen
+    # each lost line says why: nothing to see, or not looked for on that frame (a long loss)
+    assert {lines[i]["reason"] for i in hidden} <= {HIDDEN, NOT_TRIED}
+    assert lines[hidden[0]]["reason"] == HIDDEN
+    assert all("reason" not in x for x in lines if x["status"] != "lost")
     back = next(i for i in range(hidden[-1] + 1, len(seq)) if visible[i] >= 0.5 * visible[0])
     resumed = next(i for i in range(back, len(seq)) if status[i] != "lost")
     assert resumed - back <= 5
@@ -85,7 +90,10 @@ def test_a_relocalisation_the_model_does_not_fit_is_refused(synth_seq, monkeypat
         candidate = candidate_of(true, tracker.model_points)
         monkeypatch.setattr(tracker, "_candidates", lambda obs, feats, last: [(candidate, [], 0)])
         result = tracker.track(frame, frame.mask)
+        reasons.append(result.reason)
         return result.status, None if result.pose is None else inv_T(true) @ result.pose
+
+    reasons: list[str] = []
 
     def flipped(true: np.ndarray, model: np.ndarray) -> np.ndarray:
         across = np.linalg.svd(model - model.mean(axis=0))[2][2]  # the model's thinnest direction
@@ -93,6 +101,7 @@ def test_a_relocalisation_the_model_does_not_fit_is_refused(synth_seq, monkeypat
 
     status, _ = relocalise(flipped, 0.005)
     assert status == LOST
+    assert reasons[-1] == NO_POSE  # the instrument shows; no pose for it passed
     status, error = relocalise(flipped, np.inf)  # without the fit check, this wrong pose would be taken
     assert status == RELOCALISED and rotation_angle_deg(error[:3, :3]) > 90
     status, error = relocalise(lambda true, model: true, 0.005)
@@ -204,9 +213,10 @@ def test_a_long_loss_is_relocalised_on_every_few_frames_only(synth_seq, monkeypa
     tried = []
     monkeypatch.setattr(tracker, "_relocalise", lambda obs, feats: tried.append(tracker.frames_lost))
     frame = seq[4]
-    statuses = [tracker.track(frame, frame.mask).status for _ in range(12)]
-    assert statuses == [LOST] * 12
+    results = [tracker.track(frame, frame.mask) for _ in range(12)]
+    assert [r.status for r in results] == [LOST] * 12
     assert tried == [1, 2, 3, 4, 7, 10]  # lost frames before each try: the window, then every third
+    assert [r.reason == NOT_TRIED for r in results] == [n not in tried for n in range(1, 13)]
     monkeypatch.undo()
     while not tracker._relocalisation_due():
         assert tracker.track(frame, frame.mask).status == LOST
@@ -317,7 +327,10 @@ def test_a_pose_the_camera_sees_through_is_reported_lost(synth_seq):
             depth[piece] = last.depth[piece]
             rgb = frame.rgb.copy()
             rgb[piece] = last.rgb[piece]
-            out.append(tracker.track(replace(frame, rgb=rgb, depth=depth), piece if given else None).status)
+            result = tracker.track(replace(frame, rgb=rgb, depth=depth), piece if given else None)
+            if result.status == LOST and LOST not in out:
+                assert result.reason == SEEN_PAST  # the piece shows and the model fits it
+            out.append(result.status)
         return out
 
     default = TrackerConfig().failure.max_seen_past

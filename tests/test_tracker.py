@@ -17,7 +17,17 @@ from surgtrack.geometry import backproject, depth_to_xyz, make_T, transform
 from surgtrack.io import SequenceError, open_sequence, read_poses
 from surgtrack.metrics import evaluate
 from surgtrack.pipeline import RunSummary, track_sequence
-from surgtrack.tracker import LOST, RELOCALISED, TRACKED, SurgTracker, TrackResult, object_origin, shaft_range
+from surgtrack.tracker import (
+    HIDDEN,
+    LOST,
+    RELOCALISED,
+    TRACKED,
+    UNSURE,
+    SurgTracker,
+    TrackResult,
+    object_origin,
+    shaft_range,
+)
 
 
 def test_object_origin_ignores_outliers():
@@ -76,9 +86,25 @@ def test_empty_mask_frame_is_lost_not_a_made_up_pose(synth_seq):
     result = tracker.track(seq[1], np.zeros_like(seq[1].mask))
     assert result.status == LOST
     assert result.pose is None
+    assert result.reason == HIDDEN
     # The next frame with its mask is found again.
     again = tracker.track(seq[2], seq[2].mask)
     assert again.status == "relocalised" and again.pose is not None
+
+
+def test_a_pose_too_few_of_whose_points_lie_on_the_model_is_lost_as_unsure(synth_seq):
+    """Below ``failure.min_confidence`` (the share of the frame's points on the model) a pose is not reported; the
+    result says why and keeps the confidence it had."""
+    seq = open_sequence(synth_seq)
+    cfg = TrackerConfig()
+    cfg.sdf.enabled = False
+    tracker = SurgTracker(cfg)
+    tracker.register(seq[0], seq[0].mask)
+    assert tracker.track(seq[1], seq[1].mask).confidence > 0.9
+    cfg.failure.min_confidence = 1.01  # no pose can reach it
+    result = tracker.track(seq[2], seq[2].mask)
+    assert (result.status, result.reason, result.pose) == (LOST, UNSURE, None)
+    assert result.confidence > 0.9
 
 
 def test_register_rejects_a_mask_without_depth(synth_seq):
@@ -193,15 +219,16 @@ def test_the_run_summary_counts_frames_and_averages_the_tracked_frames_stage_tim
     summary = RunSummary()
     summary.add(0, TrackResult(np.eye(4), TRACKED, 1.0))
     summary.add(1, TrackResult(np.eye(4), TRACKED, 0.9, {"graph": 0.010}, sdf=True))
-    summary.add(2, TrackResult(None, LOST, 0.0, {"graph": 0.030}))
+    summary.add(2, TrackResult(None, LOST, 0.0, {"graph": 0.030}, reason=HIDDEN))
     summary.add(3, TrackResult(np.eye(4), RELOCALISED, 0.8, {"graph": 0.020, "ransac": 0.006}, sdf=True))
     assert (summary.frames, summary.lost, summary.relocalised) == (4, 1, 1)
     assert (summary.sdf_frames, summary.sdf_from) == (2, 1)
     assert summary.stage_ms == pytest.approx({"graph": 20.0, "ransac": 2.0})
     summary.seconds = 2.0
-    assert summary.line() == ("4 frames, 1 lost, 1 relocalised, L_SDF from frame 1 on 2, 2.0 frames/s "
+    assert summary.line() == ("4 frames, 1 lost (1 hidden), 1 relocalised, L_SDF from frame 1 on 2, 2.0 frames/s "
                               "(graph 20.0, ransac 2.0 ms)")
     assert summary.to_dict()["stage_ms"] == {"graph": 20.0, "ransac": 2.0}
+    assert summary.to_dict()["lost_because"] == {HIDDEN: 1}
 
 
 def test_the_end_of_run_mesh_is_the_final_field_kept_to_what_was_seen(synth_seq):

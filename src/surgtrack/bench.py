@@ -113,7 +113,8 @@ def _run_method(method: str, names: list[str], root: Path, first_mask_only: bool
             first = m["errors"]["add"]
         per_seq[name] = {"add_s_auc": m["add_s_auc"], "add_auc": m["add_auc"], "cd_cm": m["cd_cm"],
                          "add_s_auc_full": m["add_s_auc_full"], "add_auc_full": m["add_auc_full"],
-                         "lost": summary.lost, "wrong": m["wrong"], "frames": summary.frames, "fps": summary.fps,
+                         "lost": summary.lost, "lost_because": summary.lost_because, "wrong": m["wrong"],
+                         "frames": summary.frames, "fps": summary.fps,
                          "sdf_frames": summary.sdf_frames, "sdf_from": summary.sdf_from,
                          "stage_ms": summary.stage_ms, "seconds": time.perf_counter() - t0}
         log(f"{method:>15} {name:<18} ADD-S {m['add_s_auc']:6.2f}  ADD {m['add_auc']:6.2f}  "

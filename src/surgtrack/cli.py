@@ -302,7 +302,8 @@ class _OverlayWriter:
             except OSError as e:
                 fail(str(e))
         points = self.tracker.model_points if self.tracker.model_points is not None else np.zeros((0, 3))
-        self._video.write(draw_overlay(frame.rgb, result.pose, frame.K, points, result.status))
+        self._video.write(draw_overlay(frame.rgb, result.pose, frame.K, points, result.status,
+                                        reason=result.reason))
 
     def close(self) -> None:
         if self._video is not None:

@@ -12,12 +12,14 @@ from .masking import render_depth
 
 
 def draw_overlay(rgb: np.ndarray, pose: np.ndarray | None, K: np.ndarray, points_obj: np.ndarray,
-                 status: str, axis_len: float = 0.03) -> np.ndarray:
-    """RGB frame with the model's silhouette outline (green) and object axes at ``pose``; lost frames say so."""
+                 status: str, axis_len: float = 0.03, reason: str = "") -> np.ndarray:
+    """RGB frame with the model's silhouette outline (green) and object axes at ``pose``; lost frames say so, and
+    why (``reason``, `TrackResult.reason`)."""
     img = rgb.copy()
     if pose is None:
         cv2.rectangle(img, (0, 0), (img.shape[1] - 1, img.shape[0] - 1), (255, 0, 0), 6)
-        cv2.putText(img, "LOST", (12, 36), cv2.FONT_HERSHEY_SIMPLEX, 1.0, (255, 0, 0), 2, cv2.LINE_AA)
+        label = f"LOST: {reason}" if reason else "LOST"
+        cv2.putText(img, label, (12, 36), cv2.FONT_HERSHEY_SIMPLEX, 1.0, (255, 0, 0), 2, cv2.LINE_AA)
         return img
     sil = (render_depth(points_obj, pose, K, rgb.shape[:2]) > 0).astype(np.uint8)
     contours, _ = cv2.findContours(sil, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)

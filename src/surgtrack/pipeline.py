@@ -16,11 +16,13 @@ from .tracker import LOST, RELOCALISED, TRACKED, SurgTracker, TrackResult
 
 @dataclass
 class RunSummary:
-    """Counts and speed of one run; ``stage_ms`` is the mean time per frame of each tracking stage; ``sdf_frames``
-    the frames whose pose had L_SDF (eq. 11) in its graph, ``sdf_from`` the first of them (None: none had)."""
+    """Counts and speed of one run; ``lost_because`` counts the lost frames by `TrackResult.reason`; ``stage_ms`` is
+    the mean time per frame of each tracking stage; ``sdf_frames`` the frames whose pose had L_SDF (eq. 11) in its
+    graph, ``sdf_from`` the first of them (None: none had)."""
 
     frames: int = 0
     lost: int = 0
+    lost_because: dict[str, int] = field(default_factory=dict)
     relocalised: int = 0
     sdf_frames: int = 0
     sdf_from: int | None = None
@@ -42,7 +44,9 @@ class RunSummary:
         self.frames += 1
         if index == 0:
             return
-        self.lost += result.status == LOST
+        if result.status == LOST:
+            self.lost += 1
+            self.lost_because[result.reason] = self.lost_because.get(result.reason, 0) + 1
         self.relocalised += result.status == RELOCALISED
         self.sdf_frames += result.sdf
         if result.sdf and self.sdf_from is None:
@@ -51,10 +55,12 @@ class RunSummary:
             self.stage_s[k] = self.stage_s.get(k, 0.0) + v
 
     def line(self) -> str:
-        """The run in one line: frames, lost, re-localised, L_SDF, frames/s and ms per stage."""
+        """The run in one line: frames, lost (and why), re-localised, L_SDF, frames/s and ms per stage."""
         sdf = f"L_SDF from frame {self.sdf_from} on {self.sdf_frames}" if self.sdf_frames else "no L_SDF"
         stages = ", ".join(f"{k} {v:.1f}" for k, v in self.stage_ms.items())
-        return (f"{self.frames} frames, {self.lost} lost, {self.relocalised} relocalised, {sdf}, "
+        why = ", ".join(f"{n} {k}" for k, n in sorted(self.lost_because.items(), key=lambda kv: -kv[1]))
+        lost = f"{self.lost} lost ({why})" if why else f"{self.lost} lost"
+        return (f"{self.frames} frames, {lost}, {self.relocalised} relocalised, {sdf}, "
                 f"{self.fps:.1f} frames/s ({stages} ms)")
 
     def write(self, out: Path) -> None:
@@ -62,16 +68,18 @@ class RunSummary:
         write_text_atomic(out / "summary.json", json.dumps(self.to_dict(), indent=2))
 
     def to_dict(self) -> dict:
-        return {"frames": self.frames, "lost": self.lost, "relocalised": self.relocalised,
+        return {"frames": self.frames, "lost": self.lost, "lost_because": dict(self.lost_because),
+                "relocalised": self.relocalised,
                 "sdf_frames": self.sdf_frames, "sdf_from": self.sdf_from,
                 "seconds": round(self.seconds, 3), "fps": round(self.fps, 2),
                 "stage_ms": {k: round(v, 2) for k, v in self.stage_ms.items()}}
 
 
 def frame_record(result: TrackResult) -> dict:
-    """A frame's line of OUT/track.jsonl beside its frame id: status, confidence, whether L_SDF (eq. 11) was in its
-    graph, and ms per stage."""
-    return {"status": result.status, "confidence": round(result.confidence, 4), "sdf": result.sdf,
+    """A frame's line of OUT/track.jsonl beside its frame id: status (and why, when lost), confidence, whether L_SDF
+    (eq. 11) was in its graph, and ms per stage."""
+    why = {"reason": result.reason} if result.status == LOST else {}
+    return {"status": result.status, **why, "confidence": round(result.confidence, 4), "sdf": result.sdf,
             "ms": {k: round(v * 1e3, 2) for k, v in result.timings.items()}}
 
 

@@ -55,12 +55,19 @@ from .registration import BackgroundFitter, InstrumentSDF
 from .tsdf import View
 
 TRACKED, LOST, RELOCALISED = "tracked", "lost", "relocalised"
+# Why a frame was lost (TrackResult.reason):
+HIDDEN = "hidden"  # fewer than failure.min_pixels instrument pixels with valid depth: covered or out of view
+NO_POSE = "no pose"  # no coarse pose, or no re-localisation candidate passed its checks
+UNSURE = "unsure"  # fewer than failure.min_confidence of the frame's points lie on the model at the pose
+SEEN_PAST = "seen past"  # the camera sees past the model at the pose (failure.max_seen_past)
+NOT_TRIED = "not tried"  # lost before, and re-localisation is not tried on this frame (failure.relocalise_every)
 
 
 @dataclass
 class TrackResult:
     """What track() returns: pose (None when lost), status, confidence in [0, 1], per-stage seconds, the feature
-    inliers, and whether the Instrument SDF's term L_SDF (eq. 11) was in the posture graph that gave the pose."""
+    inliers, whether the Instrument SDF's term L_SDF (eq. 11) was in the posture graph that gave the pose, and for a
+    lost frame why (`HIDDEN`, `NO_POSE`, `UNSURE`, `SEEN_PAST` or `NOT_TRIED`; "" otherwise)."""
 
     pose: np.ndarray | None
     status: str
@@ -68,6 +75,7 @@ class TrackResult:
     timings: dict[str, float] = field(default_factory=dict)
     inliers: int = 0
     sdf: bool = False
+    reason: str = ""
 
 
 @dataclass(eq=False)
@@ -302,22 +310,22 @@ class SurgTracker:
         """One tracking step (Stage 2): preprocess, coarse pose (eq. 5), posture graph (eqs. 7-11), memory (eq. 6)."""
         clock = _Clock()
         if self.lost and not self._relocalisation_due():
-            return self._lose(clock)
+            return self._lose(clock, NOT_TRIED)
         self._update_sdf()
         colour = self._colour()
         if mask is None and self.lost and colour is not None:
             found = self._search(frame, colour, clock)
         else:
             found = self._located(frame, mask, clock)
-        if found is None:
-            return self._lose(clock)
+        if isinstance(found, str):
+            return self._lose(clock, found)
         obs, node, inliers = found
         pose = node.pose
         confidence = self._confidence(node)
         if confidence < self.cfg.failure.min_confidence:
-            return self._lose(clock, confidence)
+            return self._lose(clock, UNSURE, confidence)
         if self._sees_past(obs, pose):
-            return self._lose(clock, confidence)
+            return self._lose(clock, SEEN_PAST, confidence)
         status = RELOCALISED if self.lost else TRACKED
         if mask is None and status == TRACKED:
             self._learn_occluders(frame, pose)
@@ -334,29 +342,29 @@ class SurgTracker:
     # -------------------------------------------------------------------------------------------------- stages
 
     def _located(self, frame: Frame, mask: np.ndarray | None,
-                 clock: _Clock) -> tuple[Observation, _Node, int] | None:
+                 clock: _Clock) -> tuple[Observation, _Node, int] | str:
         """The frame's observation, its node at the tracked pose and the feature inlier count: coarse pose (eq. 5)
-        and posture graph (eqs. 7-11) while tracking, re-localisation (step 5) while lost; None when lost."""
+        and posture graph (eqs. 7-11) while tracking, re-localisation (step 5) while lost; why not when lost."""
         predicted = mask is None
         if predicted:
             mask = self._predicted_mask(frame, self.recent[-1].pose)
         obs = preprocess(frame, mask, self.cfg.preprocess, mask_given=not predicted)
         clock.lap("preprocess")
         if obs.n_valid < self.cfg.failure.min_pixels:
-            return None
+            return HIDDEN
         feats = self.extractor(obs)
         clock.lap("features")
         if self.lost:  # the candidates are refined by the posture graph as they compete
             found = self._relocalise(obs, feats)
             clock.lap("ransac")
             if found is None:
-                return None
+                return NO_POSE
             node, inliers = found
         else:
             coarse = self._coarse_pose(obs, feats)
             clock.lap("ransac")
             if coarse is None:
-                return None
+                return NO_POSE
             pose, edges, inliers = coarse
             node = self._node(obs, feats, orthonormalize(pose))  # chained estimates would drift off SO(3)
             if self.cfg.graph.enabled:
@@ -368,14 +376,15 @@ class SurgTracker:
                     clock.lap("remask")
         return obs, node, inliers
 
-    def _search(self, frame: Frame, colour: ColourModel, clock: _Clock) -> tuple[Observation, _Node, int] | None:
+    def _search(self, frame: Frame, colour: ColourModel, clock: _Clock) -> tuple[Observation, _Node, int] | str:
         """Re-localisation without a mask (step 5): against each of the ``failure.search_regions`` colour regions
         nearest the last position (`masking.search_regions`); the winner is the pose whose model silhouette agrees
         best with its region (`masking.silhouette_iou`), if by at least ``failure.relocalise_min_iou``. The model's
         fit alone prefers a fingertip-sized region, which some part of the model always fits. Regions are looked for
         within the reach without its cap: a region's centroid can lie far from the instrument's origin (a long
         shaft), and the pose found on it is held to the cap anyway. A region with too few trusted points is tried
-        grown into the instrument's other colours around it (`masking.grow_region`)."""
+        grown into the instrument's other colours around it (`masking.grow_region`). When lost: `HIDDEN` if no region
+        had enough trusted points, else `NO_POSE`."""
         f, pre = self.cfg.failure, self.cfg.preprocess
         seen = max(max(k.area for k in self.pool.keyframes), f.min_pixels)
         posterior = colour.posterior(frame.rgb)
@@ -383,7 +392,7 @@ class SurgTracker:
                                  self._reach(frame.index, capped=False), pre.search_mask_colour,
                                  (f.min_pixels, 3 * seen), f.search_regions)
         clock.lap("preprocess")
-        best, best_iou = None, f.relocalise_min_iou
+        best, best_iou, reason = None, f.relocalise_min_iou, HIDDEN
         for region in regions:
             obs = preprocess(frame, region, pre, mask_given=False)
             if obs.n_valid < f.min_pixels and pre.search_grow_colour > 0:
@@ -393,6 +402,7 @@ class SurgTracker:
             clock.lap("preprocess")
             if obs.n_valid < f.min_pixels:
                 continue
+            reason = NO_POSE
             feats = self.extractor(obs)
             clock.lap("features")
             found = self._relocalise(obs, feats)
@@ -401,7 +411,9 @@ class SurgTracker:
                 if iou >= best_iou:
                     best, best_iou = (obs, *found), iou
             clock.lap("ransac")
-        if best is not None and self.cfg.preprocess.predicted_mask_remask:
+        if best is None:
+            return reason
+        if self.cfg.preprocess.predicted_mask_remask:
             # the region may have merged with a hand of the instrument's colour: mask again at the found pose
             obs, node = self._remasked(best[0], best[1], [])
             best = (obs, node, best[2])
@@ -836,10 +848,10 @@ class SurgTracker:
         self._seen_past_run = self._seen_past_run + 1 if seen else 0
         return self._seen_past_run >= f.seen_past_frames
 
-    def _lose(self, clock: _Clock, confidence: float = 0.0) -> TrackResult:
+    def _lose(self, clock: _Clock, reason: str, confidence: float = 0.0) -> TrackResult:
         self.lost = True
         self.frames_lost += 1
         self._seen_past_run = 0  # a lost frame ends the row
         clock.lap("pool")
-        return TrackResult(None, LOST, confidence, clock.laps)
+        return TrackResult(None, LOST, confidence, clock.laps, reason=reason)
 
