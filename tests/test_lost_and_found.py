@@ -202,26 +202,26 @@ def test_a_relocalisation_further_than_the_instrument_can_have_moved_is_refused(
     assert relocalise(relocalise_max_reach=0.0)[0] == RELOCALISED  # 0: no cap
 
 
-def test_a_long_loss_is_relocalised_on_every_few_frames_only(synth_seq, monkeypatch):
-    """Re-localisation, the costliest step, runs on every frame of the window after a loss, then on every
-    ``relocalise_every``-th: the frames between are reported lost at once, and a frame that fits is still taken."""
+def test_a_long_loss_without_masks_is_searched_on_every_few_frames_only(synth_seq, monkeypatch):
+    """The search without a mask, the costliest step, runs on every frame of the window after a loss, then on every
+    ``relocalise_every``-th: the frames between are reported lost at once ("not tried"). A frame that comes with its
+    mask is tried whenever the mask shows the instrument, and taken when it fits; an empty mask is "hidden"."""
     seq = open_sequence(synth_seq)
     cfg = TrackerConfig()
     cfg.sdf.enabled = False
     cfg.failure.relocalise_window, cfg.failure.relocalise_every = 4, 3
     tracker, _ = _lost_after(seq, cfg)
     tried = []
-    monkeypatch.setattr(tracker, "_relocalise", lambda obs, feats: tried.append(tracker.frames_lost))
+    monkeypatch.setattr(tracker, "_search", lambda frame, colour, clock: tried.append(tracker.frames_lost) or NO_POSE)
     frame = seq[4]
-    results = [tracker.track(frame, frame.mask) for _ in range(12)]
-    assert [r.status for r in results] == [LOST] * 12
+    results = [tracker.track(frame, None) for _ in range(10)]
+    assert [r.status for r in results] == [LOST] * 10
     assert tried == [1, 2, 3, 4, 7, 10]  # lost frames before each try: the window, then every third
-    assert [r.reason == NOT_TRIED for r in results] == [n not in tried for n in range(1, 13)]
-    monkeypatch.undo()
-    while not tracker._relocalisation_due():
-        assert tracker.track(frame, frame.mask).status == LOST
+    assert [r.reason for r in results] == [NO_POSE if n in tried else NOT_TRIED for n in range(1, 11)]
+    empty = tracker.track(frame, np.zeros_like(frame.mask))
+    assert (empty.status, empty.reason) == (LOST, HIDDEN)
+    assert not tracker._relocalisation_due()  # a mask-less frame would not be searched now; this one has its mask
     assert tracker.track(frame, frame.mask).status == RELOCALISED
-
 
 
 def test_without_masks_a_nearer_look_alike_does_not_take_the_relocalisation(synth_seq):

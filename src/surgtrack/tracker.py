@@ -60,7 +60,7 @@ HIDDEN = "hidden"  # fewer than failure.min_pixels instrument pixels with valid 
 NO_POSE = "no pose"  # no coarse pose, or no re-localisation candidate passed its checks
 UNSURE = "unsure"  # fewer than failure.min_confidence of the frame's points lie on the model at the pose
 SEEN_PAST = "seen past"  # the camera sees past the model at the pose (failure.max_seen_past)
-NOT_TRIED = "not tried"  # lost before, and re-localisation is not tried on this frame (failure.relocalise_every)
+NOT_TRIED = "not tried"  # lost before, no mask, and the search skips this frame (failure.relocalise_every)
 
 
 @dataclass
@@ -309,7 +309,9 @@ class SurgTracker:
     def track(self, frame: Frame, mask: np.ndarray | None = None) -> TrackResult:
         """One tracking step (Stage 2): preprocess, coarse pose (eq. 5), posture graph (eqs. 7-11), memory (eq. 6)."""
         clock = _Clock()
-        if self.lost and not self._relocalisation_due():
+        if self.lost and mask is not None and not self._shows(frame, mask):
+            return self._lose(clock, HIDDEN)
+        if self.lost and mask is None and not self._relocalisation_due():
             return self._lose(clock, NOT_TRIED)
         self._update_sdf()
         colour = self._colour()
@@ -589,11 +591,17 @@ class SurgTracker:
         return self._best_candidate(obs, feats, cands, last)
 
     def _relocalisation_due(self) -> bool:
-        """Whether to try re-localising this lost frame (step 5): every frame of the first ``relocalise_window``
-        after the loss, then every ``relocalise_every``-th. It is the costliest step, and an instrument that has
-        stayed away that long is found at most ``relocalise_every`` - 1 frames later."""
+        """Whether to try re-localising this lost frame, which came without a mask (step 5): every frame of the
+        first ``relocalise_window`` after the loss, then every ``relocalise_every``-th. The search is the costliest
+        step, and an instrument that has stayed away that long is found at most ``relocalise_every`` - 1 frames
+        later. A frame that comes with its mask is tried whenever the mask shows the instrument (`_shows`)."""
         late = self.frames_lost - self.cfg.failure.relocalise_window
         return late <= 0 or late % max(self.cfg.failure.relocalise_every, 1) == 0
+
+    def _shows(self, frame: Frame, mask: np.ndarray) -> bool:
+        """Whether a given mask shows the instrument: ``failure.min_pixels`` of it with depth (a cheap bound on the
+        trusted pixels preprocessing keeps)."""
+        return np.count_nonzero(mask & (frame.depth > 0)) >= self.cfg.failure.min_pixels
 
     def _reach(self, index: int, capped: bool = True) -> float:
         """How far (m) the instrument's origin can have moved since the last tracked frame, by frame ``index``:
