@@ -20,6 +20,7 @@ from surgtrack.pipeline import RunSummary, track_sequence
 from surgtrack.tracker import (
     HIDDEN,
     LOST,
+    NO_DEPTH,
     RELOCALISED,
     TRACKED,
     UNSURE,
@@ -90,6 +91,20 @@ def test_empty_mask_frame_is_lost_not_a_made_up_pose(synth_seq):
     # The next frame with its mask is found again.
     again = tracker.track(seq[2], seq[2].mask)
     assert again.status == "relocalised" and again.pose is not None
+
+
+def test_a_frame_whose_mask_shows_the_instrument_without_depth_is_lost_for_want_of_depth(synth_seq):
+    """Specular metal or a sensor too near leaves the mask without depth: the frame is lost "no depth", not
+    "hidden", whether it comes while tracking or while lost."""
+    seq = open_sequence(synth_seq)
+    tracker = SurgTracker()
+    tracker.register(seq[0], seq[0].mask)
+    for i in (1, 2):
+        frame = seq[i]
+        dry = replace(frame, depth=np.where(frame.mask, 0, frame.depth).astype(frame.depth.dtype))
+        result = tracker.track(dry, frame.mask)
+        assert (result.status, result.reason, result.pose) == (LOST, NO_DEPTH, None)
+    assert tracker.track(seq[3], seq[3].mask).status == RELOCALISED
 
 
 def test_a_pose_too_few_of_whose_points_lie_on_the_model_is_lost_as_unsure(synth_seq):

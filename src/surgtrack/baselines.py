@@ -29,7 +29,7 @@ from .io import Frame
 from .masking import predict_mask
 from .preprocess import Observation, preprocess
 from .ransac import plausible, ransac_pose
-from .tracker import HIDDEN, LOST, NO_POSE, RELOCALISED, TRACKED, TrackResult, object_origin
+from .tracker import LOST, NO_POSE, RELOCALISED, TRACKED, TrackResult, object_origin, unseen
 
 
 def surface_mask(obs: Observation, erosion: int) -> np.ndarray:
@@ -89,7 +89,8 @@ class BaselineTracker(ABC):
         timings["track"] = time.perf_counter() - t1
         if pose is None:
             self.lost = True
-            return TrackResult(None, LOST, confidence, timings, reason=NO_POSE if enough else HIDDEN)
+            return TrackResult(None, LOST, confidence, timings,
+                               reason=NO_POSE if enough else unseen(mask, self.cfg.failure.min_pixels))
         status = RELOCALISED if self.lost else TRACKED
         self.lost = False
         self.pose = pose

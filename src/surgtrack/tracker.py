@@ -56,18 +56,25 @@ from .tsdf import View
 
 TRACKED, LOST, RELOCALISED = "tracked", "lost", "relocalised"
 # Why a frame was lost (TrackResult.reason):
-HIDDEN = "hidden"  # fewer than failure.min_pixels instrument pixels with valid depth: covered or out of view
+HIDDEN = "hidden"  # fewer than failure.min_pixels instrument pixels in the mask: covered or out of view
+NO_DEPTH = "no depth"  # the mask shows the instrument, but fewer than failure.min_pixels of it have trusted depth
 NO_POSE = "no pose"  # no coarse pose, or no re-localisation candidate passed its checks
 UNSURE = "unsure"  # fewer than failure.min_confidence of the frame's points lie on the model at the pose
 SEEN_PAST = "seen past"  # the camera sees past the model at the pose (failure.max_seen_past)
 NOT_TRIED = "not tried"  # lost before, no mask, and the search skips this frame (failure.relocalise_every)
 
 
+def unseen(mask: np.ndarray, min_pixels: int) -> str:
+    """Why a frame whose mask gave too few trusted points is lost: `HIDDEN` when the mask itself has fewer than
+    ``min_pixels`` pixels, else `NO_DEPTH` (the sensor's depth is missing or untrusted on the instrument)."""
+    return HIDDEN if np.count_nonzero(mask) < min_pixels else NO_DEPTH
+
+
 @dataclass
 class TrackResult:
     """What track() returns: pose (None when lost), status, confidence in [0, 1], per-stage seconds, the feature
     inliers, whether the Instrument SDF's term L_SDF (eq. 11) was in the posture graph that gave the pose, and for a
-    lost frame why (`HIDDEN`, `NO_POSE`, `UNSURE`, `SEEN_PAST` or `NOT_TRIED`; "" otherwise)."""
+    lost frame why (`HIDDEN`, `NO_DEPTH`, `NO_POSE`, `UNSURE`, `SEEN_PAST` or `NOT_TRIED`; "" otherwise)."""
 
     pose: np.ndarray | None
     status: str
@@ -310,7 +317,7 @@ class SurgTracker:
         """One tracking step (Stage 2): preprocess, coarse pose (eq. 5), posture graph (eqs. 7-11), memory (eq. 6)."""
         clock = _Clock()
         if self.lost and mask is not None and not self._shows(frame, mask):
-            return self._lose(clock, HIDDEN)
+            return self._lose(clock, unseen(mask, self.cfg.failure.min_pixels))
         if self.lost and mask is None and not self._relocalisation_due():
             return self._lose(clock, NOT_TRIED)
         self._update_sdf()
@@ -353,7 +360,7 @@ class SurgTracker:
         obs = preprocess(frame, mask, self.cfg.preprocess, mask_given=not predicted)
         clock.lap("preprocess")
         if obs.n_valid < self.cfg.failure.min_pixels:
-            return HIDDEN
+            return unseen(mask, self.cfg.failure.min_pixels)
         feats = self.extractor(obs)
         clock.lap("features")
         if self.lost:  # the candidates are refined by the posture graph as they compete
