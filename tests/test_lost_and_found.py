@@ -340,6 +340,43 @@ def test_a_pose_the_camera_sees_through_is_reported_lost(synth_seq):
     assert LOST in statuses(default, given=True, check_given=True)[:2]
 
 
+def test_the_pose_a_loss_saw_through_is_not_offered_again(synth_seq, monkeypatch):
+    """Within ``failure.relocalise_window`` frames of a loss the last tracked pose competes in re-localisation, unless
+    the loss began with the camera seeing through the model at it (`SEEN_PAST`): taken again, it would be lost again
+    by the same check a few frames later, over and over (ultrasound_2, leaving the view, went round so four times)."""
+    seq = open_sequence(synth_seq)
+    cfg = TrackerConfig()
+    cfg.sdf.enabled = False
+
+    def offered_after(reason: str) -> tuple[np.ndarray, list[np.ndarray]]:
+        tracker = SurgTracker(cfg)
+        tracker.register(seq[0], seq[0].mask)
+        for i in (1, 2):
+            tracker.track(seq[i], seq[i].mask)
+        if reason == SEEN_PAST:
+            tracker._sees_past = lambda obs, pose: True  # the check itself: the test above
+            lost = tracker.track(seq[3], seq[3].mask)
+            del tracker._sees_past
+        else:
+            lost = tracker.track(seq[3], np.zeros_like(seq[3].mask))
+        assert (lost.status, lost.reason) == (LOST, reason)
+        seen: dict = {}
+        best = tracker._best_candidate
+
+        def competing(obs, feats, cands, last):
+            seen.update(last=last, offered=[c[0] for c in cands])
+            return best(obs, feats, cands, last)
+
+        monkeypatch.setattr(tracker, "_best_candidate", competing)
+        tracker.track(seq[4], seq[4].mask)
+        return seen["last"], seen["offered"]
+
+    last, offered = offered_after(HIDDEN)
+    assert any(np.array_equal(c, last) for c in offered)
+    last, offered = offered_after(SEEN_PAST)
+    assert offered and not any(np.array_equal(c, last) for c in offered)
+
+
 def _ghost_beside(tracker: SurgTracker, pose: np.ndarray, mask: np.ndarray, offset: float) -> np.ndarray:
     """The tracker's model points moved ``offset`` m across the shaft (in the image plane), added to its model as a
     predicted-mask keyframe would add fingers beside the instrument; returns them in the object frame."""

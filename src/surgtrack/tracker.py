@@ -196,6 +196,7 @@ class SurgTracker:
         self.recent: deque[_Node] = deque(maxlen=max(self.cfg.graph.adjacent, 1))
         self.lost = False
         self.frames_lost = 0
+        self._lost_because = ""  # why the loss under way began (the reason of its first frame)
         self._seen_past_run = 0  # frames in a row that saw past the model (_sees_past)
         self.sdf: InstrumentSDF | None = None  # the converged field the posture graph uses (L_SDF, eq. 11)
         self.fitter: BackgroundFitter | None = None
@@ -590,10 +591,12 @@ class SurgTracker:
 
     def _relocalise(self, obs: Observation, feats: Features) -> tuple[_Node, int] | None:
         """Re-localisation after a loss (step 5) against the memory pool and the model; shortly after the loss the
-        last pose competes too."""
+        last pose competes too, unless the loss began with the camera seeing through the model there (`SEEN_PAST`):
+        taken again, that pose would be lost again by the same check a few frames later, over and over."""
         last = self.recent[-1].pose
         cands = self._candidates(obs, feats, last)
-        if self.cfg.graph.enabled and self.frames_lost <= self.cfg.failure.relocalise_window:
+        if (self.cfg.graph.enabled and self.frames_lost <= self.cfg.failure.relocalise_window
+                and self._lost_because != SEEN_PAST):  # not a pose the camera was seeing through
             cands.append((last, [], 0))
         return self._best_candidate(obs, feats, cands, last)
 
@@ -864,6 +867,8 @@ class SurgTracker:
         return self._seen_past_run >= f.seen_past_frames
 
     def _lose(self, clock: _Clock, reason: str, confidence: float = 0.0) -> TrackResult:
+        if not self.lost:
+            self._lost_because = reason
         self.lost = True
         self.frames_lost += 1
         self._seen_past_run = 0  # a lost frame ends the row
