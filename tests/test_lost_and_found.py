@@ -343,7 +343,7 @@ def test_a_pose_the_camera_sees_through_is_reported_lost(synth_seq):
 def test_the_pose_a_loss_saw_through_is_not_offered_again(synth_seq, monkeypatch):
     """Within ``failure.relocalise_window`` frames of a loss the last tracked pose competes in re-localisation, unless
     the loss began with the camera seeing through the model at it (`SEEN_PAST`): taken again, it would be lost again
-    by the same check a few frames later, over and over (ultrasound_2, leaving the view, went round so four times)."""
+    by the same check a few frames later."""
     seq = open_sequence(synth_seq)
     cfg = TrackerConfig()
     cfg.sdf.enabled = False
