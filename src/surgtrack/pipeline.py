@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections import Counter
 from collections.abc import Callable
 from contextlib import closing
 from dataclasses import dataclass, field
@@ -22,7 +23,7 @@ class RunSummary:
 
     frames: int = 0
     lost: int = 0
-    lost_because: dict[str, int] = field(default_factory=dict)
+    lost_because: Counter[str] = field(default_factory=Counter)
     relocalised: int = 0
     sdf_frames: int = 0
     sdf_from: int | None = None
@@ -46,7 +47,7 @@ class RunSummary:
             return
         if result.status == LOST:
             self.lost += 1
-            self.lost_because[result.reason] = self.lost_because.get(result.reason, 0) + 1
+            self.lost_because[result.reason] += 1
         self.relocalised += result.status == RELOCALISED
         self.sdf_frames += result.sdf
         if result.sdf and self.sdf_from is None:
@@ -58,7 +59,7 @@ class RunSummary:
         """The run in one line: frames, lost (and why), re-localised, L_SDF, frames/s and ms per stage."""
         sdf = f"L_SDF from frame {self.sdf_from} on {self.sdf_frames}" if self.sdf_frames else "no L_SDF"
         stages = ", ".join(f"{k} {v:.1f}" for k, v in self.stage_ms.items())
-        why = ", ".join(f"{n} {k}" for k, n in sorted(self.lost_because.items(), key=lambda kv: -kv[1]))
+        why = ", ".join(f"{n} {k}" for k, n in self.lost_because.most_common())
         lost = f"{self.lost} lost ({why})" if why else f"{self.lost} lost"
         return (f"{self.frames} frames, {lost}, {self.relocalised} relocalised, {sdf}, "
                 f"{self.fps:.1f} frames/s ({stages} ms)")
