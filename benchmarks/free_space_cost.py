@@ -38,11 +38,6 @@ def recorded_calls(seq_root: Path, term: type) -> tuple[list, int, float]:
     return calls, *track_recording(seq_root, term, "residuals", record)
 
 
-def edges(t: FreeSpace | Coverage) -> list[MaskEdge]:
-    """The mask edge a call uses: the frame's for L_FS, the keyframe's for L_CV."""
-    return [t.view.edge]
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("data", type=Path)
@@ -56,7 +51,8 @@ def main() -> None:
     totals = [0, 0.0, 0.0, 0.0]
     for root in sequences(args.data):
         calls, frames, seconds = recorded_calls(root, term)
-        masks = list({id(e): (e.mask,) for t, _, _ in calls for e in edges(t)}.values())
+        # the mask edge each call uses (the frame's for L_FS, the keyframe's for L_CV), each edge once
+        masks = list({id(t.view.edge): (t.view.edge.mask,) for t, _, _ in calls}.values())
         t_res = fastest(term.residuals, calls, args.repeats)
         t_edge = fastest(MaskEdge.of, masks, args.repeats)
         per_call = 1e6 * t_res / max(len(calls), 1)
