@@ -22,7 +22,7 @@ from surgtrack.igtl import PoseStreamer, pose_to_igtl
 from surgtrack.io import Frame, Sequence, open_sequence, read_poses
 from surgtrack.pipeline import track_sequence
 from surgtrack.realsense import RealSenseError, RealSenseSource, box_mask, parse_box, record_sequence
-from surgtrack.tracker import LOST, RELOCALISED, TrackResult
+from surgtrack.tracker import HIDDEN, LOST, RELOCALISED, TrackResult
 
 
 class _Played(Sequence):
@@ -104,10 +104,11 @@ def live_run(recording: Path, synth_seq: Path, fast_config: Path, tmp_path_facto
                         work / "out", "--video", work / "overlay.mp4", "--igtl-port", port, "--config", fast_config)
         last_transform = client.wait_for_message("InstrumentToCamera", timeout=5)
         last_status = client.wait_for_message("TrackingStatus", timeout=5)
+        last_reason = client.wait_for_message("TrackingLostReason", timeout=5)
     finally:
         client.stop()
     return {"run": run, "out": work / "out", "video": work / "overlay.mp4", "transform": last_transform,
-            "status": last_status}
+            "status": last_status, "reason": last_reason}
 
 
 # ------------------------------------------------------------------------------------------- RealSense file
@@ -258,20 +259,22 @@ def test_box_mask_and_parse_box_errors():
 # ------------------------------------------------------------------------------------------- OpenIGTLink
 
 
-def test_streams_tracked_poses_in_millimetres_and_lost_status(live_run: dict):
+def test_streams_tracked_poses_in_millimetres_and_lost_status_with_its_reason(live_run: dict):
     out = live_run["out"]
     poses = read_poses(out / "ob_in_cam")
     records = [json.loads(line) for line in (out / "track.jsonl").read_text().splitlines()]
-    records.append({"frame": "lost", "status": LOST})  # a lost frame after the tracked sequence
-    with PoseStreamer(port=0, device_name="Endoscope") as streamer:
+    records.append({"frame": "lost", "status": LOST, "reason": HIDDEN})  # a lost frame after the tracked sequence
+    with PoseStreamer(port=0, device_name="Endoscope", reason_device="Why") as streamer:
         client = pyigtl.OpenIGTLinkClient(host="127.0.0.1", port=streamer.port)
         try:
             wait_connected(streamer)
             for rec in records:
                 pose = poses.get(rec["frame"])
-                assert streamer.send(TrackResult(pose, rec["status"], 1.0))
+                assert streamer.send(TrackResult(pose, rec["status"], 1.0, reason=rec.get("reason", "")))
                 status = client.wait_for_message("TrackingStatus", timeout=5)
                 assert status is not None and status.string == rec["status"]
+                reason = client.wait_for_message("Why", timeout=5)
+                assert reason is not None and reason.string == rec.get("reason", "")
                 if pose is None:
                     assert client.wait_for_message("Endoscope", timeout=0.3) is None
                     continue
@@ -289,6 +292,8 @@ def test_streamer_sends_nothing_without_a_client_and_checks_names():
         assert not streamer.send(TrackResult(np.eye(4), "tracked", 1.0))
     with pytest.raises(ValueError, match="20"):
         PoseStreamer(port=0, device_name="InstrumentToCameraFrame")
+    with pytest.raises(ValueError, match="differ"):
+        PoseStreamer(port=0, status_device="Tool", reason_device="Tool")
     T = np.eye(4)
     T[:3, 3] = [0.01, -0.02, 0.3]
     np.testing.assert_allclose(pose_to_igtl(T)[:3, 3], [10.0, -20.0, 300.0])
@@ -329,6 +334,7 @@ def test_live_tracks_a_recording_and_streams(live_run: dict, recording: Path, sy
     assert live_run["transform"] is not None, "the client received no transform from surgtrack live"
     np.testing.assert_allclose(live_run["transform"].matrix, pose_to_igtl(poses[last]), atol=1e-3)
     assert live_run["status"].string == records[-1]["status"]
+    assert live_run["reason"] is not None and live_run["reason"].string == records[-1].get("reason", "")
     assert count_video_frames(live_run["video"]) == (len(seq), 320, 240)
 
 

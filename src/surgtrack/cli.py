@@ -326,6 +326,8 @@ def live(
     = "InstrumentToCamera",
     status_device: Annotated[str, typer.Option(help="OpenIGTLink device name of the STRING status messages")]
     = "TrackingStatus",
+    reason_device: Annotated[str, typer.Option(help="OpenIGTLink device name of the STRING messages saying why a "
+                                                    "frame is lost (empty when tracked)")] = "TrackingLostReason",
     out: Annotated[Path | None, typer.Option("--out", "-o", help="also write ob_in_cam/ and track.jsonl here")]
     = None,
     video: Annotated[Path | None, typer.Option(help="write an overlay video")] = None,
@@ -374,10 +376,11 @@ def live(
             from .igtl import PoseStreamer
 
             try:
-                streamer = PoseStreamer(igtl_port, device_name, status_device, igtl_interface)
+                streamer = PoseStreamer(igtl_port, device_name, status_device, igtl_interface, reason_device)
             except (OSError, ValueError) as e:
                 fail(f"OpenIGTLink server on port {igtl_port}: {e}")
-            typer.echo(f"streaming {device_name} (mm) and {status_device} over OpenIGTLink on port {streamer.port}")
+            typer.echo(f"streaming {device_name} (mm), {status_device} and {reason_device} over OpenIGTLink on port "
+                       f"{streamer.port}")
         if out is not None:
             writer = ResultWriter(out, cfg.to_dict())
         tracker = SurgTracker(cfg, model=instrument_model)

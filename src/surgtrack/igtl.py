@@ -1,10 +1,13 @@
 """Stream tracked poses to a navigation system over OpenIGTLink (3D Slicer's OpenIGTLinkIF, the PLUS toolkit).
 
-Every frame sends a STRING message on the status device (``tracked``, ``relocalised`` or ``lost``); a frame with a
-pose also sends a TRANSFORM message on the pose device: the object-to-camera pose with its translation in
-millimetres, the unit Slicer and PLUS use. A lost frame sends no transform, so a receiver keeps the last valid one
-and reads the status to know it is stale. pyigtl's server serves one client at a time; frames tracked while no
-client is connected are not queued (a navigation system wants the current pose, not a backlog).
+Every frame sends a STRING message on the status device (``tracked``, ``relocalised`` or ``lost``) and one on the
+reason device (why a lost frame is lost: ``hidden``, ``no depth``, ... as in track.jsonl; empty when it has a pose);
+a frame with a pose also sends a TRANSFORM message on the pose device: the object-to-camera pose with its
+translation in millimetres, the unit Slicer and PLUS use. A lost frame sends no transform, so a receiver keeps the
+last valid one and reads the status to know it is stale. The reason has a device of its own so that a receiver
+comparing the status to ``lost`` reads the same strings as before. pyigtl's server serves one client at a time;
+frames tracked while no client is connected are not queued (a navigation system wants the current pose, not a
+backlog).
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ from .tracker import TrackResult
 
 DEFAULT_DEVICE = "InstrumentToCamera"
 DEFAULT_STATUS_DEVICE = "TrackingStatus"
+DEFAULT_REASON_DEVICE = "TrackingLostReason"
 IGTL_DEVICE_NAME_BYTES = 20  # the header's device-name field
 
 
@@ -47,12 +51,17 @@ class PoseStreamer:
     """
 
     def __init__(self, port: int = 18944, device_name: str = DEFAULT_DEVICE,
-                 status_device: str = DEFAULT_STATUS_DEVICE, interface: str | None = None):
+                 status_device: str = DEFAULT_STATUS_DEVICE, interface: str | None = None,
+                 reason_device: str = DEFAULT_REASON_DEVICE):
         import pyigtl
 
         self._pyigtl = pyigtl
         self.device_name = _check_name(device_name)
         self.status_device = _check_name(status_device)
+        self.reason_device = _check_name(reason_device)
+        if len({self.device_name, self.status_device, self.reason_device}) < 3:
+            raise ValueError(f"OpenIGTLink device names {device_name!r}, {status_device!r} and {reason_device!r} "
+                             "must differ")
         main_thread = threading.current_thread() is threading.main_thread()
         signals = (signal.SIGINT, signal.SIGTERM)
         saved = {s: signal.getsignal(s) for s in signals} if main_thread else {}
@@ -68,7 +77,8 @@ class PoseStreamer:
         return bool(self._server.is_connected())
 
     def send(self, result: TrackResult, timestamp: float | None = None) -> bool:
-        """Send one frame's status (and transform when it has a pose); False when no client is connected."""
+        """Send one frame's status and lost reason (and transform when it has a pose); False when no client is
+        connected."""
         if not self.connected:
             return False
         igtl = self._pyigtl
@@ -78,6 +88,8 @@ class PoseStreamer:
                                       wait=False)
         self._server.send_message(igtl.StringMessage(result.status, timestamp=timestamp,
                                                      device_name=self.status_device), wait=False)
+        self._server.send_message(igtl.StringMessage(result.reason, timestamp=timestamp,
+                                                     device_name=self.reason_device), wait=False)
         self.sent += 1
         return True
 
