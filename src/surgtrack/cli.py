@@ -8,6 +8,7 @@ from typing import Annotated
 
 import typer
 
+from .igtl import DEFAULT_DEVICE, DEFAULT_REASON_DEVICE, DEFAULT_STATUS_DEVICE
 from .io import SequenceError
 
 app = typer.Typer(help="CAD-free 6-DoF tracking and reconstruction of surgical instruments from RGB-D video.",
@@ -323,11 +324,12 @@ def live(
     igtl_interface: Annotated[str | None, typer.Option(help="network interface to listen on (e.g. eth0; default: "
                                                            "127.0.0.1 only)")] = None,
     device_name: Annotated[str, typer.Option(help="OpenIGTLink device name of the TRANSFORM messages")]
-    = "InstrumentToCamera",
+    = DEFAULT_DEVICE,
     status_device: Annotated[str, typer.Option(help="OpenIGTLink device name of the STRING status messages")]
-    = "TrackingStatus",
+    = DEFAULT_STATUS_DEVICE,
     reason_device: Annotated[str, typer.Option(help="OpenIGTLink device name of the STRING messages saying why a "
-                                                    "frame is lost (empty when tracked)")] = "TrackingLostReason",
+                                                    "frame is lost (empty when tracked)")]
+    = DEFAULT_REASON_DEVICE,
     out: Annotated[Path | None, typer.Option("--out", "-o", help="also write ob_in_cam/ and track.jsonl here")]
     = None,
     video: Annotated[Path | None, typer.Option(help="write an overlay video")] = None,
@@ -376,7 +378,8 @@ def live(
             from .igtl import PoseStreamer
 
             try:
-                streamer = PoseStreamer(igtl_port, device_name, status_device, igtl_interface, reason_device)
+                streamer = PoseStreamer(igtl_port, device_name, status_device, interface=igtl_interface,
+                                        reason_device=reason_device)
             except (OSError, ValueError) as e:
                 fail(f"OpenIGTLink server on port {igtl_port}: {e}")
             typer.echo(f"streaming {device_name} (mm), {status_device} and {reason_device} over OpenIGTLink on port "

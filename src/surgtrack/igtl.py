@@ -15,10 +15,12 @@ from __future__ import annotations
 import signal
 import threading
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .tracker import TrackResult
+if TYPE_CHECKING:  # the CLI reads the default device names without loading the tracker
+    from .tracker import TrackResult
 
 DEFAULT_DEVICE = "InstrumentToCamera"
 DEFAULT_STATUS_DEVICE = "TrackingStatus"
