@@ -58,3 +58,29 @@ def test_grid_keeps_the_valid_points_and_the_graph_finds_them():
     lut = g.lut.reshape(h, w)
     assert np.array_equal(lut[v - top, u - left], np.arange(1, len(g.idx) + 1))
     assert not lut[~on[top : top + h, left : left + w]].any()
+
+
+def test_observation_held_in_its_crop_reads_as_the_whole_image():
+    depth, _ = tilted_plane()
+    mask = np.zeros(depth.shape, bool)
+    mask[31:70, 47:101] = True  # odd corners: the crop starts off the grid of every factor
+    frame = Frame(0, "0", np.zeros(depth.shape + (3,), np.uint8), depth, K, mask)
+    obs = preprocess(frame, mask, PreprocessConfig())
+    rs, cs = obs.box
+    assert obs.xyz.shape == depth.shape + (3,) and obs.valid.shape == depth.shape
+    outside = np.ones(depth.shape, bool)
+    outside[rs, cs] = False
+    assert not obs.valid[outside].any() and not obs.depth[outside].any() and not obs.xyz[outside].any()
+    assert obs.n_valid == obs.valid.sum() > 1000
+    pts, nrm = obs.points()
+    assert np.array_equal(pts, obs.xyz[obs.valid]) and np.array_equal(nrm, obs.normals[obs.valid])
+    for factor in (2, 3, 4):
+        xyz, _, _ = obs.grid(factor)
+        whole = np.where(obs.valid[..., None], obs.xyz, 0)[::factor, ::factor]
+        assert np.array_equal(xyz, whole)
+    v, u = np.array([0, 40, 50, 119, 45]), np.array([0, 60, 90, 159, 49])  # two outside the crop
+    ok, p, q = obs.at(v, u)
+    assert np.array_equal(ok, obs.valid[v, u]) and ok[1] and ok[2] and not ok[0] and not ok[3]
+    assert np.array_equal(p, obs.xyz[v[ok], u[ok]]) and np.array_equal(q, obs.normals[v[ok], u[ok]])
+    empty = preprocess(frame, np.zeros_like(mask), PreprocessConfig())
+    assert empty.n_valid == 0 and not empty.valid.any() and not empty.at(v, u)[0].any()

@@ -268,7 +268,7 @@ class RansacOnlyTracker(BaselineTracker):
 
     def _features(self, obs: Observation) -> Features:
         """Keypoints in the instrument mask, lifted on every ``_surface`` pixel."""
-        return self.extractor(replace(obs, valid=self._surface(obs)))
+        return self.extractor(replace(obs, crop_valid=self._surface(obs)[obs.box]))  # no depth beyond the box
 
     def _update(self, obs: Observation, pose: np.ndarray) -> None:
         """Keep the frame's features on its (model-consistent) instrument pixels as the next reference."""

@@ -73,10 +73,10 @@ class FeatureExtractor:
             return _empty(self.norm)
         uv = (uv + 0.5) / scale - 0.5
         uv = uv + np.array([cs.start, rs.start], np.float32)
-        ui = np.clip(np.round(uv[:, 0]).astype(int), 0, obs.valid.shape[1] - 1)
-        vi = np.clip(np.round(uv[:, 1]).astype(int), 0, obs.valid.shape[0] - 1)
-        keep = obs.valid[vi, ui]
-        return Features(uv[keep], desc[keep], obs.xyz[vi[keep], ui[keep]], obs.normals[vi[keep], ui[keep]])
+        ui = np.clip(np.round(uv[:, 0]).astype(int), 0, obs.shape[1] - 1)
+        vi = np.clip(np.round(uv[:, 1]).astype(int), 0, obs.shape[0] - 1)
+        keep, xyz, normals = obs.at(vi, ui)
+        return Features(uv[keep], desc[keep], xyz, normals)
 
     def _detect_xfeat(self, rgb: np.ndarray, detect_mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """XFeat keypoints inside ``detect_mask``; the crop is padded (edge pixels repeated) to a multiple of 32 on

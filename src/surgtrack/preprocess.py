@@ -14,20 +14,22 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .config import PreprocessConfig
-from .geometry import depth_to_xyz
 from .io import Frame
 
 
 @dataclass
 class Observation:
-    """A preprocessed frame: filtered depth, per-pixel points and normals, and the instrument's valid pixels."""
+    """A preprocessed frame: filtered depth, per-pixel points and normals, and the instrument's valid pixels, held in
+    the crop ``box`` around the mask (every pixel outside it is invalid); the whole image's arrays are made on first
+    use."""
 
     frame: Frame
-    depth: np.ndarray  # (H, W) float32 metres, filtered; 0 = invalid
-    xyz: np.ndarray  # (H, W, 3) camera-frame points
-    normals: np.ndarray  # (H, W, 3) camera-frame unit normals (0 where unknown)
-    valid: np.ndarray  # (H, W) bool: instrument pixel with trusted depth and normal
     mask: np.ndarray  # (H, W) bool: the instrument mask used (before depth checks)
+    box: tuple[slice, slice]  # the crop's rows and columns in the image
+    crop_depth: np.ndarray  # (h, w) float32 metres, filtered; 0 = invalid
+    crop_xyz: np.ndarray  # (h, w, 3) float32 camera-frame points
+    crop_normals: np.ndarray  # (h, w, 3) float32 camera-frame unit normals (0 where unknown)
+    crop_valid: np.ndarray  # (h, w) bool: instrument pixel with trusted depth and normal
     mask_given: bool = True  # the mask came with the frame (False: predicted from the model or a colour region)
 
     @property
@@ -35,8 +37,38 @@ class Observation:
         return self.frame.K
 
     @property
+    def shape(self) -> tuple[int, int]:
+        """The image's (H, W)."""
+        return self.mask.shape
+
+    @cached_property
     def n_valid(self) -> int:
-        return int(self.valid.sum())
+        return int(self.crop_valid.sum())
+
+    def _whole(self, crop: np.ndarray) -> np.ndarray:
+        out = np.zeros(self.shape + crop.shape[2:], crop.dtype)
+        out[self.box] = crop
+        return out
+
+    @cached_property
+    def depth(self) -> np.ndarray:
+        """(H, W) float32 filtered depth, 0 = invalid."""
+        return self._whole(self.crop_depth)
+
+    @cached_property
+    def xyz(self) -> np.ndarray:
+        """(H, W, 3) camera-frame points."""
+        return self._whole(self.crop_xyz)
+
+    @cached_property
+    def normals(self) -> np.ndarray:
+        """(H, W, 3) camera-frame unit normals (0 where unknown)."""
+        return self._whole(self.crop_normals)
+
+    @cached_property
+    def valid(self) -> np.ndarray:
+        """(H, W) bool: instrument pixel with trusted depth and normal."""
+        return self._whole(self.crop_valid)
 
     @cached_property
     def mask_edge(self) -> MaskEdge:
@@ -44,18 +76,32 @@ class Observation:
         return MaskEdge.of(self.mask)
 
     def points(self) -> tuple[np.ndarray, np.ndarray]:
-        """The masked point cloud and its normals, camera frame."""
-        return self.xyz[self.valid], self.normals[self.valid]
+        """The masked point cloud and its normals, camera frame (row-major pixel order)."""
+        return self.crop_xyz[self.crop_valid], self.crop_normals[self.crop_valid]
+
+    def at(self, v: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Whether each image pixel (v, u) is valid, and the points and normals of those that are."""
+        rs, cs = self.box
+        i, j = v - rs.start, u - cs.start
+        h, w = self.crop_valid.shape
+        ok = (i >= 0) & (i < h) & (j >= 0) & (j < w)
+        ok[ok] = self.crop_valid[i[ok], j[ok]]
+        return ok, self.crop_xyz[i[ok], j[ok]], self.crop_normals[i[ok], j[ok]]
 
     def grid(self, factor: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Points and normals on a grid downscaled by ``factor`` (z = 0 outside the instrument), and its K."""
-        v = self.valid[::factor, ::factor]
-        xyz = np.zeros(v.shape + (3,), self.xyz.dtype)
-        xyz[v] = self.xyz[::factor, ::factor][v]
-        nrm = np.zeros(v.shape + (3,), self.normals.dtype)
-        nrm[v] = self.normals[::factor, ::factor][v]
+        """Points and normals on the image's grid downscaled by ``factor`` (grid pixel i is image pixel i * factor;
+        z = 0 outside the instrument), and its K."""
+        (h, w), (rs, cs) = self.shape, self.box
+        xyz = np.zeros((-(-h // factor), -(-w // factor), 3), self.crop_xyz.dtype)
+        nrm = np.zeros_like(xyz)
+        r0, c0 = -(-rs.start // factor), -(-cs.start // factor)  # the first grid row and column in the crop
+        r1, c1 = -(-rs.stop // factor), -(-cs.stop // factor)
+        sub = (slice(r0 * factor - rs.start, None, factor), slice(c0 * factor - cs.start, None, factor))
+        v = self.crop_valid[sub]
+        xyz[r0:r1, c0:c1][v] = self.crop_xyz[sub][v]
+        nrm[r0:r1, c0:c1][v] = self.crop_normals[sub][v]
         K = self.K.copy()
-        K[:2] /= factor  # grid pixel i is image pixel i * factor
+        K[:2] /= factor
         return xyz, nrm, K
 
 
@@ -73,8 +119,12 @@ def mask_bbox(mask: np.ndarray, margin: int) -> tuple[slice, slice] | None:
 
 def normals_from_xyz(xyz: np.ndarray, step: int = 2) -> np.ndarray:
     """Unit normals from the cross product of central differences ``step`` pixels apart, facing the camera (0 at
-    the border and where the differences are parallel). Worked on one component plane at a time."""
-    x, y, z = (np.ascontiguousarray(xyz[..., k]) for k in range(3))
+    the border and where the differences are parallel)."""
+    return np.stack(_plane_normals(*(np.ascontiguousarray(xyz[..., k]) for k in range(3)), step), axis=-1)
+
+
+def _plane_normals(x: np.ndarray, y: np.ndarray, z: np.ndarray, step: int) -> tuple[np.ndarray, ...]:
+    """`normals_from_xyz` of the component planes x, y, z: the normal's planes."""
 
     def diff(a: np.ndarray, axis: int) -> np.ndarray:
         out = np.zeros_like(a)
@@ -95,7 +145,7 @@ def normals_from_xyz(xyz: np.ndarray, step: int = 2) -> np.ndarray:
     flip = n[0] * x + n[1] * y + n[2] * z > 0
     for c in n:
         np.negative(c, out=c, where=flip)
-    return np.stack(n, axis=-1)
+    return n
 
 
 @dataclass(frozen=True)
@@ -131,43 +181,34 @@ class MaskEdge:
 
 
 def preprocess(frame: Frame, mask: np.ndarray, cfg: PreprocessConfig, mask_given: bool = True) -> Observation:
-    """Filter depth, compute normals and keep instrument pixels with trustworthy geometry; ``mask_given`` says
-    whether ``mask`` came with the frame."""
-    h, w = frame.depth.shape
-    xyz = np.zeros((h, w, 3), np.float32)
-    normals = np.zeros((h, w, 3), np.float32)
-    valid = np.zeros((h, w), bool)
-    depth = np.zeros((h, w), np.float32)
-    box = mask_bbox(mask, margin=max(cfg.bilateral_d, 2) + 2)
-    if box is not None:
-        rs, cs = box
-        d = frame.depth[rs, cs].astype(np.float32)
-        d = np.where((d > cfg.min_depth) & (d < cfg.max_depth), d, 0).astype(np.float32)
-        good = d > 0
-        if cfg.bilateral_d > 0:
-            f = cv2.bilateralFilter(d, cfg.bilateral_d, cfg.bilateral_sigma_depth, cfg.bilateral_sigma_space)
-            # The filter mixes in invalid zeros at hole borders: keep only pixels it changed little.
-            good &= np.abs(f - d) < 3 * cfg.bilateral_sigma_depth
-            d = np.where(good, f, 0).astype(np.float32)
-        m = mask[rs, cs].astype(np.uint8)
-        if cfg.mask_erosion > 0:
-            kernel = np.ones((2 * cfg.mask_erosion + 1,) * 2, np.uint8)
-            m = cv2.erode(m, kernel)
-        p = depth_to_xyz(d, frame.K, (rs.start, cs.start)).astype(np.float32)
-        n = normals_from_xyz(p, cfg.normal_step)
-        # A normal is trusted only where the neighbours it is made from have depth on the same surface.
-        k = cfg.normal_step
-        dn = np.zeros_like(good)
-        c = (slice(k, -k), slice(k, -k))
-        up, down, left, right = (slice(None, -2 * k), c[1]), (slice(2 * k, None), c[1]), (c[0], slice(None, -2 * k)), (
-            c[0], slice(2 * k, None))
-        dn[c] = good[c] & good[up] & good[down] & good[left] & good[right]
-        dn[c] &= (np.abs(d[up] - d[down]) < 0.02) & (np.abs(d[left] - d[right]) < 0.02)
-        ray = p / np.maximum(np.linalg.norm(p, axis=-1, keepdims=True), 1e-9)
-        cos = -np.sum(ray * n, axis=-1)
-        ok = dn & (m > 0) & (cos > np.cos(np.radians(cfg.max_grazing_deg)))
-        depth[rs, cs] = d
-        xyz[rs, cs] = p
-        normals[rs, cs] = n
-        valid[rs, cs] = ok
-    return Observation(frame, depth, xyz, normals, valid, mask, mask_given)
+    """Filter depth, compute normals and keep instrument pixels with trustworthy geometry, in a crop around the mask;
+    ``mask_given`` says whether ``mask`` came with the frame. Worked on one component plane at a time."""
+    box = mask_bbox(mask, margin=max(cfg.bilateral_d, 2) + 2) or (slice(0, 0), slice(0, 0))
+    rs, cs = box
+    d = frame.depth[rs, cs].astype(np.float32)
+    d = np.where((d > cfg.min_depth) & (d < cfg.max_depth), d, np.float32(0))
+    good = d > 0
+    if cfg.bilateral_d > 0 and d.size:
+        f = cv2.bilateralFilter(d, cfg.bilateral_d, cfg.bilateral_sigma_depth, cfg.bilateral_sigma_space)
+        # The filter mixes in invalid zeros at hole borders: keep only pixels it changed little.
+        good &= np.abs(f - d) < 3 * cfg.bilateral_sigma_depth
+        d = np.where(good, f, np.float32(0))
+    m = mask[rs, cs].astype(np.uint8)
+    if cfg.mask_erosion > 0 and m.size:
+        m = cv2.erode(m, np.ones((2 * cfg.mask_erosion + 1,) * 2, np.uint8))
+    K = frame.K
+    x = ((np.arange(cs.start, cs.stop) - K[0, 2]) * d / K[0, 0]).astype(np.float32)  # as `depth_to_xyz`
+    y = ((np.arange(rs.start, rs.stop)[:, None] - K[1, 2]) * d / K[1, 1]).astype(np.float32)
+    n = _plane_normals(x, y, d, cfg.normal_step)
+    # A normal is trusted only where the neighbours it is made from have depth on the same surface.
+    k = cfg.normal_step
+    dn = np.zeros_like(good)
+    c = (slice(k, -k), slice(k, -k))
+    up, down, left, right = (slice(None, -2 * k), c[1]), (slice(2 * k, None), c[1]), (c[0], slice(None, -2 * k)), (
+        c[0], slice(2 * k, None))
+    dn[c] = good[c] & good[up] & good[down] & good[left] & good[right]
+    dn[c] &= (np.abs(d[up] - d[down]) < 0.02) & (np.abs(d[left] - d[right]) < 0.02)
+    length = np.maximum(np.sqrt(x * x + y * y + d * d), np.float32(1e-9))
+    cos = -((x / length) * n[0] + (y / length) * n[1] + (d / length) * n[2])  # the normal against the viewing ray
+    ok = dn & (m > 0) & (cos > np.cos(np.radians(cfg.max_grazing_deg)))
+    return Observation(frame, mask, box, d, np.stack([x, y, d], axis=-1), np.stack(n, axis=-1), ok, mask_given)

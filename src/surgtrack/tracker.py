@@ -445,7 +445,7 @@ class SurgTracker:
         return self.colour if max(gates) > 0 else None
 
     def _node(self, obs: Observation, feats: Features, pose: np.ndarray) -> _Node:
-        factor = max(1, round(self.cfg.graph.depth_downscale * obs.depth.shape[1] / 640))
+        factor = max(1, round(self.cfg.graph.depth_downscale * obs.shape[1] / 640))
         xyz, nrm, K = obs.grid(factor)
         return _Node(obs.frame.id, obs.frame.index, pose, feats, xyz, nrm, K)
 
