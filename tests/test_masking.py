@@ -10,9 +10,11 @@ from surgtrack.masking import (
     ColourModel,
     grow_region,
     predict_mask,
+    render_box,
     render_depth,
     search_regions,
     seen_past,
+    silhouette_core,
     silhouette_iou,
 )
 
@@ -277,3 +279,22 @@ def test_render_depth_is_the_nearest_point_within_the_splat_even_at_the_frame_bo
     np.minimum.at(full, (v[inside], u[inside]), z[inside].astype(np.float32))
     full = minimum_filter(full, size=5, mode="constant", cval=np.inf)
     assert np.array_equal(depth, np.where(np.isfinite(full), full, 0))
+
+
+def test_seen_past_worked_in_the_renders_box_is_that_of_the_whole_frame():
+    """The check renders only the box around the model (grown for the silhouette's erosion): on a shaft running
+    off the frame's edge, with the background behind part of it, it reads as on the whole frame."""
+    K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
+    rng = np.random.default_rng(3)
+    points = rng.normal(size=(3000, 3)) * [0.08, 0.01, 0.01]
+    pose = make_T(np.eye(3), np.array([0.05, 0.0, 0.3]))
+    whole = render_depth(points, pose, K, (240, 320))
+    box, crop = render_box(points, pose, K, (240, 320), pad=3)
+    assert box[1].stop == 320 and np.array_equal(whole[box], crop) and whole.sum() == crop.sum()
+    depth = np.where(whole > 0, whole, 0.6)
+    depth[:, 250:] += 0.05  # seen through where the shaft leaves the frame
+    depth[100:110, :200] = 0.1  # an occluder across it
+    core = silhouette_core(whole) & (depth > 0) & (depth > whole - 0.01)
+    expected = (depth[core] > whole[core] + 0.01).mean()
+    assert 0.1 < expected < 0.5 and seen_past(points, pose, K, depth, 0.01) == expected
+    assert seen_past(points, make_T(np.eye(3), np.array([0.0, 0.0, -0.3])), K, depth, 0.01) == 0.0  # behind

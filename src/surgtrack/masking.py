@@ -16,6 +16,17 @@ def render_depth(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, shape:
                  splat: int = SPLAT) -> np.ndarray:
     """Z-buffered depth of model points seen at ``pose`` (0 where nothing projects); points are splatted to
     (2 * splat + 1)^2 pixels so a sparse model renders as a closed surface."""
+    box, crop = render_box(points_obj, pose, K, shape, splat)
+    depth = np.zeros(shape, np.float32)
+    depth[box] = crop
+    return depth
+
+
+def render_box(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, shape: tuple[int, int],
+               splat: int = SPLAT, pad: int = 0) -> tuple[tuple[slice, slice], np.ndarray]:
+    """`render_depth` in the box around the projections grown by the splat and ``pad`` more pixels (clipped to the
+    image; nothing renders outside it): the box's rows and columns, and the depth in it (empty when nothing
+    projects)."""
     h, w = shape
     p = transform(pose, points_obj)
     p = p[p[:, 2] > 1e-3]
@@ -24,20 +35,18 @@ def render_depth(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, shape:
     v = np.round(uv[:, 1]).astype(int)
     inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
     u, v, z = u[inside], v[inside], z[inside]
-    depth = np.zeros((h, w), np.float32)
     if len(z) == 0:
-        return depth
-    # the box around the projections, plus the splat: nothing renders outside it
-    u0, v0 = max(int(u.min()) - splat, 0), max(int(v.min()) - splat, 0)
-    u1, v1 = min(int(u.max()) + splat + 1, w), min(int(v.max()) + splat + 1, h)
+        return (slice(0, 0), slice(0, 0)), np.zeros((0, 0), np.float32)
+    grow = splat + pad
+    u0, v0 = max(int(u.min()) - grow, 0), max(int(v.min()) - grow, 0)
+    u1, v1 = min(int(u.max()) + grow + 1, w), min(int(v.max()) + grow + 1, h)
     box = np.full((v1 - v0, u1 - u0), np.inf, np.float32)
     np.minimum.at(box, (v - v0, u - u0), z.astype(np.float32))
     if splat > 0:
         box = -cv2.dilate(-box, np.ones((2 * splat + 1,) * 2, np.uint8))  # min filter
     box[box >= np.finfo(np.float32).max] = 0  # the min filter pads the border with float32 max
     box[~np.isfinite(box)] = 0
-    depth[v0:v1, u0:u1] = box
-    return depth
+    return (slice(v0, v1), slice(u0, u1)), box
 
 
 def silhouette_core(model: np.ndarray) -> np.ndarray:
@@ -244,7 +253,10 @@ def seen_past(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, depth: np
     """Share of the model's silhouette at ``pose`` (`silhouette_core`) where the frame's depth lies more
     than ``tol`` behind the model: the camera saw through where the pose puts the instrument. Pixels with nothing
     seen, or something more than ``tol`` in front of the model (an occluder), are left out."""
-    model = render_depth(points_obj, pose, K, depth.shape)
+    box, model = render_box(points_obj, pose, K, depth.shape, pad=SPLAT)  # room for silhouette_core's erosion
+    if model.size == 0:
+        return 0.0
+    depth = depth[box]
     core = silhouette_core(model) & (depth > 0) & (depth > model - tol)
     n = int(core.sum())
     return float((depth[core] > model[core] + tol).sum()) / n if n else 0.0
