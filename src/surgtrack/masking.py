@@ -70,26 +70,30 @@ def predict_mask(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, depth:
     a hand nor tissue at the instrument's depth, and those inside it at least ``inside_posterior`` (0: not looked
     up), so fingers touching the instrument, within the depth window, stay out too. With ``grow_posterior`` > 0 the
     mask then grows into the parts the model does not have yet (`grow_mask`)."""
-    model = render_depth(points_obj, pose, K, depth.shape)
+    whole = np.zeros(depth.shape, bool)
+    # Worked in the box the model renders to, grown by the margin and the silhouette's erosion: nothing beyond it.
+    box, model = render_box(points_obj, pose, K, depth.shape, pad=margin + SPLAT)
     if not (model > 0).any():
-        return np.zeros(depth.shape, bool)
+        return whole
     kernel = np.ones((2 * margin + 1,) * 2, np.uint8)
     zmin = -cv2.dilate(-np.where(model > 0, model, np.float32(1e3)), kernel)
     zmax = cv2.dilate(model, kernel)
-    mask = (zmax > 0) & (depth > 0) & (depth > zmin - tol) & (depth < zmax + tol)
+    d = depth[box]
+    mask = (zmax > 0) & (d > 0) & (d > zmin - tol) & (d < zmax + tol)
     if front_tol is not None:
-        tight = mask & (depth > zmin - front_tol)
+        tight = mask & (d > zmin - front_tol)
         if tight.sum() >= keep * mask.sum():
             mask = tight
+    whole[box] = mask
     if colour is not None and rgb is not None:
         core = silhouette_core(model)
         looked = mask & ~core if inside_posterior <= 0 else mask.copy()
         least = np.where(core[looked], inside_posterior, min_posterior)
-        posterior = colour.posterior(rgb) if grow_posterior > 0 else None  # the whole frame, once, to grow into
-        mask[looked] = (colour.posterior(rgb[looked]) if posterior is None else posterior[looked]) >= least
-        if posterior is not None and mask.any():
-            mask = grow_mask(mask, depth, posterior >= grow_posterior, grow_step, grow_ratio)
-    return mask
+        mask[looked] = colour.posterior(rgb[box][looked]) >= least
+        whole[box] = mask
+        if grow_posterior > 0 and mask.any():
+            whole = grow_mask(whole, depth, colour.posterior(rgb) >= grow_posterior, grow_step, grow_ratio)
+    return whole
 
 
 def grow_mask(mask: np.ndarray, depth: np.ndarray, candidates: np.ndarray, step: float, ratio: float) -> np.ndarray:
