@@ -8,7 +8,7 @@ from surgtrack.config import PreprocessConfig
 from surgtrack.geometry import depth_to_xyz
 from surgtrack.io import Frame
 from surgtrack.posture_graph import GridPoints
-from surgtrack.preprocess import normals_from_xyz, preprocess
+from surgtrack.preprocess import normals_from_planes, preprocess
 
 K = np.array([[300.0, 0.0, 80.0], [0.0, 300.0, 60.0], [0.0, 0.0, 1.0]])
 
@@ -26,13 +26,14 @@ def tilted_plane(h: int = 120, w: int = 160) -> tuple[np.ndarray, np.ndarray]:
 def test_normals_of_a_plane_face_the_camera_and_are_zero_at_the_border():
     depth, n = tilted_plane()
     xyz = depth_to_xyz(depth, K).astype(np.float32)
+    planes = [np.ascontiguousarray(xyz[..., k]) for k in range(3)]
     for step in (1, 2):
-        nrm = normals_from_xyz(xyz, step)
+        nrm = np.stack(normals_from_planes(*planes, step), axis=-1)
         inner = nrm[step:-step, step:-step]
         assert np.abs(inner - n.astype(np.float32)).max() < 1e-4
         assert not nrm[:step].any() and not nrm[:, -step:].any()
-    flat = np.zeros_like(xyz)  # no depth: no normal, and nothing undefined
-    assert not normals_from_xyz(flat).any()
+    flat = np.zeros(depth.shape, np.float32)  # no depth: no normal, and nothing undefined
+    assert not np.any(normals_from_planes(flat, flat, flat))
 
 
 def test_grid_keeps_the_valid_points_and_the_graph_finds_them():

@@ -122,11 +122,15 @@ def backproject(depth: np.ndarray, K: np.ndarray, mask: np.ndarray | None = None
 def depth_to_xyz(depth: np.ndarray, K: np.ndarray, origin: tuple[int, int] = (0, 0)) -> np.ndarray:
     """Per-pixel camera-frame points (H, W, 3) of a depth map, or of a crop of one whose top-left pixel is
     ``origin`` = (row, column) in the image K belongs to; invalid pixels have z = 0."""
+    return np.stack([*depth_to_xy(depth, K, origin), depth], axis=-1)
+
+
+def depth_to_xy(depth: np.ndarray, K: np.ndarray, origin: tuple[int, int] = (0, 0)) -> tuple[np.ndarray, np.ndarray]:
+    """The x and y planes (H, W) of `depth_to_xyz` (its z plane is ``depth``), in float64."""
     h, w = depth.shape
-    u, v = np.meshgrid(np.arange(origin[1], origin[1] + w), np.arange(origin[0], origin[0] + h))
-    x = (u - K[0, 2]) * depth / K[0, 0]
-    y = (v - K[1, 2]) * depth / K[1, 1]
-    return np.stack([x, y, depth], axis=-1)
+    x = (np.arange(origin[1], origin[1] + w) - K[0, 2]) * depth / K[0, 0]
+    y = (np.arange(origin[0], origin[0] + h)[:, None] - K[1, 2]) * depth / K[1, 1]
+    return x, y
 
 
 def project(p: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

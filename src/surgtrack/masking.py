@@ -70,9 +70,9 @@ def predict_mask(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, depth:
     a hand nor tissue at the instrument's depth, and those inside it at least ``inside_posterior`` (0: not looked
     up), so fingers touching the instrument, within the depth window, stay out too. With ``grow_posterior`` > 0 the
     mask then grows into the parts the model does not have yet (`grow_mask`)."""
-    whole = np.zeros(depth.shape, bool)
     # Worked in the box the model renders to, grown by the margin and the silhouette's erosion: nothing beyond it.
     box, model = render_box(points_obj, pose, K, depth.shape, pad=margin + SPLAT)
+    whole = np.zeros(depth.shape, bool)
     if not (model > 0).any():
         return whole
     kernel = np.ones((2 * margin + 1,) * 2, np.uint8)
@@ -84,15 +84,14 @@ def predict_mask(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, depth:
         tight = mask & (d > zmin - front_tol)
         if tight.sum() >= keep * mask.sum():
             mask = tight
-    whole[box] = mask
     if colour is not None and rgb is not None:
         core = silhouette_core(model)
         looked = mask & ~core if inside_posterior <= 0 else mask.copy()
         least = np.where(core[looked], inside_posterior, min_posterior)
         mask[looked] = colour.posterior(rgb[box][looked]) >= least
-        whole[box] = mask
-        if grow_posterior > 0 and mask.any():
-            whole = grow_mask(whole, depth, colour.posterior(rgb) >= grow_posterior, grow_step, grow_ratio)
+    whole[box] = mask
+    if colour is not None and rgb is not None and grow_posterior > 0 and mask.any():
+        whole = grow_mask(whole, depth, colour.posterior(rgb) >= grow_posterior, grow_step, grow_ratio)
     return whole
 
 

@@ -14,6 +14,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .config import PreprocessConfig
+from .geometry import depth_to_xy
 from .io import Frame
 
 
@@ -117,14 +118,10 @@ def mask_bbox(mask: np.ndarray, margin: int) -> tuple[slice, slice] | None:
     )
 
 
-def normals_from_xyz(xyz: np.ndarray, step: int = 2) -> np.ndarray:
-    """Unit normals from the cross product of central differences ``step`` pixels apart, facing the camera (0 at
-    the border and where the differences are parallel)."""
-    return np.stack(_plane_normals(*(np.ascontiguousarray(xyz[..., k]) for k in range(3)), step), axis=-1)
-
-
-def _plane_normals(x: np.ndarray, y: np.ndarray, z: np.ndarray, step: int) -> tuple[np.ndarray, ...]:
-    """`normals_from_xyz` of the component planes x, y, z: the normal's planes."""
+def normals_from_planes(x: np.ndarray, y: np.ndarray, z: np.ndarray, step: int = 2) -> tuple[np.ndarray, ...]:
+    """Unit normals of the points whose component planes are x, y, z (each (H, W)), as their three planes: the
+    cross product of central differences ``step`` pixels apart, facing the camera (0 at the border and where the
+    differences are parallel)."""
 
     def diff(a: np.ndarray, axis: int) -> np.ndarray:
         out = np.zeros_like(a)
@@ -196,10 +193,8 @@ def preprocess(frame: Frame, mask: np.ndarray, cfg: PreprocessConfig, mask_given
     m = mask[rs, cs].astype(np.uint8)
     if cfg.mask_erosion > 0 and m.size:
         m = cv2.erode(m, np.ones((2 * cfg.mask_erosion + 1,) * 2, np.uint8))
-    K = frame.K
-    x = ((np.arange(cs.start, cs.stop) - K[0, 2]) * d / K[0, 0]).astype(np.float32)  # as `depth_to_xyz`
-    y = ((np.arange(rs.start, rs.stop)[:, None] - K[1, 2]) * d / K[1, 1]).astype(np.float32)
-    n = _plane_normals(x, y, d, cfg.normal_step)
+    x, y = (c.astype(np.float32) for c in depth_to_xy(d, frame.K, (rs.start, cs.start)))
+    n = normals_from_planes(x, y, d, cfg.normal_step)
     # A normal is trusted only where the neighbours it is made from have depth on the same surface.
     k = cfg.normal_step
     dn = np.zeros_like(good)
