@@ -298,3 +298,20 @@ def test_seen_past_worked_in_the_renders_box_is_that_of_the_whole_frame():
     expected = (depth[core] > whole[core] + 0.01).mean()
     assert 0.1 < expected < 0.5 and seen_past(points, pose, K, depth, 0.01) == expected
     assert seen_past(points, make_T(np.eye(3), np.array([0.0, 0.0, -0.3])), K, depth, 0.01) == 0.0  # behind
+
+
+def test_silhouette_iou_worked_in_the_renders_box_is_that_of_the_whole_frame():
+    """The IoU renders only the model's box: a mask reaching far beyond it (a uint8 mask, as read from a PNG), a
+    model running off the frame's edge and a model behind the camera read as on the whole frame."""
+    K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
+    rng = np.random.default_rng(3)
+    points = rng.normal(size=(3000, 3)) * [0.08, 0.01, 0.01]
+    pose = make_T(np.eye(3), np.array([0.05, 0.0, 0.3]))
+    outline = render_depth(points, pose, K, (240, 320)) > 0
+    mask = np.zeros((240, 320), np.uint8)
+    mask[110:130, 100:320] = 255  # over part of the shaft
+    mask[0:40, 0:60] = 7  # far from the model's box
+    expected = (outline & (mask > 0)).sum() / (outline | (mask > 0)).sum()
+    assert 0.05 < expected < 0.9
+    assert silhouette_iou(points, pose, K, mask) == expected
+    assert silhouette_iou(points, make_T(np.eye(3), np.array([0.0, 0.0, -0.3])), K, mask) == 0.0

@@ -267,7 +267,10 @@ def seen_past(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, depth: np
 
 def silhouette_iou(points_obj: np.ndarray, pose: np.ndarray, K: np.ndarray, mask: np.ndarray) -> float:
     """Intersection over union of the model's silhouette at ``pose`` (`render_depth`) and ``mask``: low when a
-    pose fits the frame's points to one part of the model and the rest of it would show where nothing was seen."""
-    outline = render_depth(points_obj, pose, K, mask.shape) > 0
-    union = int((outline | mask).sum())
-    return float((outline & mask).sum()) / union if union else 0.0
+    pose fits the frame's points to one part of the model and the rest of it would show where nothing was seen.
+    Rendered in the model's box (`render_box`): the mask beyond it counts towards the union only."""
+    box, model = render_box(points_obj, pose, K, mask.shape)
+    outline = model > 0
+    inside = int(np.count_nonzero(outline & (mask[box] != 0)))
+    union = int(np.count_nonzero(outline)) + int(np.count_nonzero(mask)) - inside
+    return inside / union if union else 0.0

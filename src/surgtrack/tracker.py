@@ -40,7 +40,7 @@ from .masking import (
     ColourModel,
     grow_region,
     predict_mask,
-    render_depth,
+    render_box,
     search_regions,
     seen_past,
     silhouette_iou,
@@ -838,8 +838,9 @@ class SurgTracker:
         gap = self.cfg.preprocess.colour_occluder_gap
         if gap <= 0 or self._colour() is None or self.model_points is None:
             return
-        model = render_depth(self.model_points, pose, frame.K, frame.depth.shape)
-        self.colour.add_surroundings(frame.rgb, (model > 0) & (frame.depth > 0) & (frame.depth < model - gap))
+        box, model = render_box(self.model_points, pose, frame.K, frame.depth.shape)
+        depth = frame.depth[box]
+        self.colour.add_surroundings(frame.rgb[box], (model > 0) & (depth > 0) & (depth < model - gap))
 
     def _predicted_mask(self, frame: Frame, pose: np.ndarray) -> np.ndarray:
         """No mask given: render the keyframes' points at ``pose`` and keep depth-consistent pixels."""
