@@ -99,6 +99,7 @@ class GraphConfig:
     free_space_margin: float = 2.0  # pixels off the mask before L_FS acts (mask edges, mixed depth)
     free_space_points: int = 1500  # model points (strided) that L_FS projects
     free_space_predicted: bool = False  # L_FS also on frames that came without a mask (predicted masks)
+    free_space_background: float = 0.05  # m: without a mask, L_FS on given masks' points vs. the background
     w_cv: float = 1.0  # weight of L_CV, the frame's points the first keyframe saw past pulled into its mask (0: off)
     coverage_points: int = 1000  # frame points (strided) that L_CV projects into the first keyframe
     coverage_gate: float = 0.02  # m: a point further into the keyframe's free space shows a wrong pose, not a slide

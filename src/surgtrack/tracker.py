@@ -49,7 +49,7 @@ from .masking import (
 from .memory_pool import Keyframe, MemoryPool
 from .model import InstrumentModel
 from .posture_graph import Coverage, FeatureEdge, FreeSpace, GraphNode, GridPoints, optimize_graph
-from .preprocess import Observation, preprocess
+from .preprocess import MaskEdge, Observation, preprocess
 from .ransac import plausible, ransac_pose, within
 from .registration import BackgroundFitter, InstrumentSDF
 from .tsdf import View
@@ -642,11 +642,9 @@ class SurgTracker:
         what the data leave free at the node's starting (coarse) pose, along the directions ``graph.prior_null``
         selects, with weight ``graph.w_m``; for a re-localisation ``candidate``, ``failure.relocalise_prior_null``
         and ``failure.relocalise_w_m``. With ``obs`` and ``graph.w_fs`` set, L_FS keeps the model out of what the
-        frame saw past (`posture_graph.FreeSpace`), when the frame came with its mask: a mask predicted from the
-        model (or a colour region while lost) leaves out what the model's pose leaves out, and the background beside
-        it is not known to be free (``graph.free_space_predicted`` trusts it all the same). Such a frame, unless it is
-        a re-localisation ``candidate`` (held where it was found), also gets L_CV (`_coverage`): its points kept out
-        of what the first keyframe saw past. A frame that came with its mask takes ``graph.given_mask_iterations``
+        frame saw past (`_free_space`). A frame that came with its mask, unless it is a re-localisation
+        ``candidate`` (held where it was found), also gets L_CV (`_coverage`): its points kept out of what the first
+        keyframe saw past. A frame that came with its mask takes ``graph.given_mask_iterations``
         Gauss-Newton steps, one on a predicted mask ``graph.iterations``: its mask is found again at the pose they
         reach (`_remasked`), which fewer steps leave short. Sets
         ``node.sdf`` to whether L_SDF was in the graph (a field that agrees with the frame, `_field_agrees`, and
@@ -675,15 +673,33 @@ class SurgTracker:
         if candidate:
             cfg = replace(cfg, prior_null=self.cfg.failure.relocalise_prior_null, w_m=self.cfg.failure.relocalise_w_m)
         free_space = None
-        if (obs is not None and cfg.w_fs > 0 and self.model_points is not None
-                and (obs.mask_given or cfg.free_space_predicted)):
-            free_space = (0, FreeSpace.of(self.model_points, obs.mask_edge, obs.frame.depth, obs.K,
-                                          cfg.free_space_points))
+        if obs is not None and cfg.w_fs > 0 and self.model_points is not None:
+            free_space = self._free_space(node, obs, cfg)
         poses = optimize_graph(nodes, graph_edges, cfg, self.sdf if use_sdf else None,
                                [0] if use_sdf else [], pairs_2d=pairs, priors=[(0, prior)], free_space=free_space,
                                coverage=None if candidate else self._coverage(node, obs, cfg))
         node.sdf = use_sdf
         return poses[0]
+
+    def _free_space(self, node: _Node, obs: Observation, cfg: GraphConfig) -> tuple[int, FreeSpace] | None:
+        """L_FS (`posture_graph.FreeSpace`) for the node: on a frame that came with its mask (or any, with
+        ``graph.free_space_predicted``) every model point against the mask; on one without, with
+        ``graph.free_space_background`` > 0, the points that given masks made (the first frame's, when only it had
+        one) against the background, the pixels whose depth lies that much or more behind the model's furthest
+        point at the node's pose. A mask predicted from the model (or a colour region while lost) leaves out what
+        the model's pose leaves out, so the pixels beside it are not known to be free; the background is. The
+        points predicted masks added can hold fingers a pose put on the instrument, which the background would then
+        push the pose off."""
+        if obs.mask_given or cfg.free_space_predicted:
+            points, edge = self.model_points, obs.mask_edge
+        elif cfg.free_space_background > 0 and self._given.any():
+            points = self.model_points[self._given]
+            d = obs.frame.depth
+            near = d < transform(node.pose, self.model_points)[:, 2].max() + cfg.free_space_background
+            edge = MaskEdge.of(obs.mask | ((d > 0) & near))
+        else:
+            return None
+        return 0, FreeSpace.of(points, edge, obs.frame.depth, obs.K, cfg.free_space_points)
 
     def _coverage(self, node: _Node, obs: Observation | None, cfg: GraphConfig) -> tuple | None:
         """L_CV (`posture_graph.Coverage`) for a frame that came with its mask, or any with
