@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import shutil
 from dataclasses import replace
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -438,9 +439,10 @@ def test_a_frames_fit_to_the_model_follows_its_pose_and_the_model(synth_seq):
 
 
 def test_free_space_acts_on_frames_that_came_with_their_mask(synth_seq, monkeypatch):
-    """L_FS (graph.w_fs) refines the pose of a frame given with its mask; a frame without one is masked from the
-    model's prediction, whose surroundings are not known to be free, and is refined without it unless
-    graph.free_space_predicted says otherwise."""
+    """L_FS (graph.w_fs) refines the pose of a frame given with its mask against that mask. A frame without one is
+    masked from the model's prediction, whose surroundings are not known to be free: it gets L_FS against the
+    background only (graph.free_space_background: the pixels whose depth lies that far behind the model), for the
+    points the given masks made, unless graph.free_space_predicted trusts the predicted mask; with neither, none."""
     import surgtrack.tracker as tracker_module
 
     seq = open_sequence(synth_seq)
@@ -448,18 +450,30 @@ def test_free_space_acts_on_frames_that_came_with_their_mask(synth_seq, monkeypa
     graph = tracker_module.optimize_graph
     monkeypatch.setattr(tracker_module, "optimize_graph",
                         lambda *a, **k: seen.append(k.get("free_space")) or graph(*a, **k))
-    for predicted_too in (False, True):
+    for predicted_too, background in ((False, 0.0), (False, 0.05), (True, 0.05)):
         cfg = TrackerConfig()
         cfg.sdf.enabled = False
         cfg.graph.free_space_predicted = predicted_too
+        cfg.graph.free_space_background = background
         tracker = SurgTracker(cfg)
         tracker.register(seq[0], seq[0].mask)
         seen.clear()
         assert tracker.track(seq[1], seq[1].mask).status == "tracked"
         assert seen and all(fs is not None and fs[0] == 0 for fs in seen)
+        assert all(len(fs[1].points) == min(len(tracker.model_points), cfg.graph.free_space_points) for fs in seen)
+        given = {tuple(p) for p in tracker.model_points[tracker._given]}
+        pose, far = tracker.recent[-1].pose, tracker.model_points + [5.0, 0.0, 0.0]  # out of view
+        tracker._remember_points(SimpleNamespace(pose=pose, xyz=transform(pose, far)[:, None]), given=False)
         seen.clear()
         assert tracker.track(seq[2], None).status == "tracked"
-        assert seen and all((fs is not None) == predicted_too for fs in seen)
+        assert seen and all((fs is not None) == (predicted_too or background > 0) for fs in seen)
+        if background > 0 and not predicted_too:
+            depth = seq[2].depth
+            for _, fs in seen:
+                assert all(tuple(p) in given for p in fs.points)  # the given mask's points only
+                outline = fs.view.edge.mask
+                assert not outline[depth > 0.9].any()  # the drape, 0.5 m or more behind the instrument
+                assert outline[(depth > 0) & (depth < 0.5)].all()  # the instrument, the hand: not known free
     cfg.graph.w_fs = 0.0
     seen.clear()
     tracker.track(seq[3], seq[3].mask)
