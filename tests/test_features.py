@@ -10,7 +10,7 @@ import pytest
 from surgtrack.config import PreprocessConfig
 from surgtrack.features import FeatureExtractor, match
 from surgtrack.io import Frame
-from surgtrack.preprocess import preprocess
+from surgtrack.preprocess import preprocess, remasked
 
 K = np.array([[300.0, 0.0, 160.0], [0.0, 300.0, 120.0], [0.0, 0.0, 1.0]])
 H, W = 240, 320
@@ -56,3 +56,60 @@ def test_a_thin_instrument_crop_gets_keypoints(kind: str):
     f = FeatureExtractor(kind)(observation(0, mask))
     assert len(f) > 0
     assert (np.abs(f.uv[:, 1] - 120.5) < 8).all()
+
+
+class _Counting:
+    """An OpenCV detector that counts its detections."""
+
+    def __init__(self, detector) -> None:
+        self.detector, self.calls = detector, 0
+
+    def detectAndCompute(self, image, mask):  # noqa: N802 - OpenCV's name
+        self.calls += 1
+        return self.detector.detectAndCompute(image, mask)
+
+
+@pytest.mark.parametrize("kind", ["sift", "orb", "xfeat"])
+def test_a_frame_masked_again_in_its_crop_gets_what_a_fresh_detection_gives(kind: str):
+    """The tracker masks a frame again at its tracked pose (`preprocess.remasked`): in the same crop SIFT and XFeat
+    take the keypoints they found on the first mask and keep those on the second; the result is a fresh detection's."""
+    mask = np.zeros((H, W), bool)
+    mask[70:170, 90:230] = True
+    second = mask.copy()
+    second[100:140, 120:200] = False  # the same box, another mask
+    obs = observation(0, mask)
+    again = remasked(obs, second, PreprocessConfig())
+    extract = FeatureExtractor(kind, max_keypoints=400)
+    if kind != "xfeat":
+        extract._cv = _Counting(extract._cv)
+    first, f = extract(obs), extract(again)
+    fresh = FeatureExtractor(kind, max_keypoints=400)(again)
+    assert 0 < len(f) < len(first)
+    for name in ("uv", "desc", "xyz", "normals"):
+        assert np.array_equal(getattr(f, name), getattr(fresh, name)), name
+    if kind != "xfeat":
+        assert extract._cv.calls == (1 if kind == "sift" else 2)  # ORB masks before it ranks: it detects again
+        extract(observation(6, mask))  # another frame: detected anew
+        assert extract._cv.calls == (2 if kind == "sift" else 3)
+
+
+def test_sift_keypoints_on_the_mask_are_those_of_a_masked_detection():
+    """SIFT ranks its keypoints over the whole crop and only then applies a mask, so detecting on the crop and keeping
+    the keypoints on the mask gives OpenCV's masked detection (keypoints, order, descriptors)."""
+    mask = np.zeros((H, W), bool)
+    mask[70:170, 90:230] = True
+    mask[100:140, 120:200] = False
+    obs = observation(0, mask)
+    f = FeatureExtractor("sift", max_keypoints=60)(obs)  # fewer than the crop holds: the ranking matters
+    rs, cs = 62, 82  # the extractor's crop: the mask's box grown by 8 pixels
+    image = cv2.cvtColor(obs.frame.rgb[rs:178, cs:238], cv2.COLOR_RGB2GRAY)
+    scale = 320 / 156
+    image = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC)
+    on = cv2.dilate(mask[rs:178, cs:238].astype(np.uint8), np.ones((5, 5), np.uint8))
+    on = cv2.resize(on, (image.shape[1], image.shape[0]), interpolation=cv2.INTER_NEAREST)
+    kps, desc = cv2.SIFT_create(nfeatures=60, contrastThreshold=0.02).detectAndCompute(image, on)
+    uv = (np.array([k.pt for k in kps], np.float32) + 0.5) / scale - 0.5 + np.array([cs, rs], np.float32)
+    u, v = np.round(uv).astype(int).T
+    kept = obs.at(v, u)[0]  # those with trusted depth
+    assert len(f) == kept.sum() > 10
+    assert np.array_equal(f.uv, uv[kept]) and np.array_equal(f.desc, desc[kept])

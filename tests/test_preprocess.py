@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from surgtrack.config import PreprocessConfig
 from surgtrack.geometry import depth_to_xyz
 from surgtrack.io import Frame
 from surgtrack.posture_graph import GridPoints
-from surgtrack.preprocess import normals_from_planes, preprocess
+from surgtrack.preprocess import normals_from_planes, preprocess, remasked
 
 K = np.array([[300.0, 0.0, 80.0], [0.0, 300.0, 60.0], [0.0, 0.0, 1.0]])
 
@@ -85,3 +86,26 @@ def test_observation_held_in_its_crop_reads_as_the_whole_image():
     assert np.array_equal(p, obs.xyz[v[ok], u[ok]]) and np.array_equal(q, obs.normals[v[ok], u[ok]])
     empty = preprocess(frame, np.zeros_like(mask), PreprocessConfig())
     assert empty.n_valid == 0 and not empty.valid.any() and not empty.at(v, u)[0].any()
+
+
+@pytest.mark.parametrize("erosion", [0, 2])
+def test_a_frame_masked_again_is_as_if_preprocessed_anew(erosion: int):
+    """`remasked` (the tracker's second mask of a frame, at its tracked pose): in the same crop the filtered depth,
+    points and normals are the first mask's, reused; in another crop the frame is preprocessed anew."""
+    depth, _ = tilted_plane()
+    depth = depth + np.random.default_rng(0).normal(0.0, 0.001, depth.shape).astype(np.float32)
+    depth[50:54, 60:66] = 0  # a hole the filter must keep out
+    cfg = PreprocessConfig(mask_erosion=erosion)
+    first = np.zeros(depth.shape, bool)
+    first[30:70, 40:100] = True
+    second = first.copy()
+    second[40:55, 55:80] = False  # the same box, another mask
+    frame = Frame(0, "0", np.zeros(depth.shape + (3,), np.uint8), depth, K, None)
+    obs = preprocess(frame, first, cfg, mask_given=False)
+    for mask, same_crop in ((second, True), (np.roll(first, 7, axis=1), False)):
+        again, fresh = remasked(obs, mask, cfg), preprocess(frame, mask, cfg, mask_given=False)
+        assert (again.box == obs.box) == same_crop and again.box == fresh.box and not again.mask_given
+        for name in ("crop_depth", "crop_xyz", "crop_normals", "crop_valid", "crop_trusted"):
+            assert np.array_equal(getattr(again, name), getattr(fresh, name)), name
+        assert np.shares_memory(again.crop_xyz, obs.crop_xyz) == same_crop
+    assert remasked(obs, second, cfg).n_valid < obs.n_valid

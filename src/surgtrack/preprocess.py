@@ -32,6 +32,7 @@ class Observation:
     crop_normals: np.ndarray  # (h, w, 3) float32 camera-frame unit normals (0 where unknown)
     crop_valid: np.ndarray  # (h, w) bool: instrument pixel with trusted depth and normal
     mask_given: bool = True  # the mask came with the frame (False: predicted from the model or a colour region)
+    crop_trusted: np.ndarray | None = None  # (h, w) bool: trusted depth and normal, mask or not (`remasked`)
 
     @property
     def K(self) -> np.ndarray:
@@ -177,10 +178,35 @@ class MaskEdge:
         return dist, (u - q[:, 0]) / n, (v - q[:, 1]) / n
 
 
+def crop_box(mask: np.ndarray, cfg: PreprocessConfig) -> tuple[slice, slice]:
+    """The crop `preprocess` works in: the mask's box, grown by the bilateral filter's reach and the normals'."""
+    return mask_bbox(mask, margin=max(cfg.bilateral_d, 2) + 2) or (slice(0, 0), slice(0, 0))
+
+
+def _mask_pixels(mask: np.ndarray, box: tuple[slice, slice], cfg: PreprocessConfig) -> np.ndarray:
+    """The mask in the crop, eroded by ``cfg.mask_erosion`` pixels, as bool."""
+    m = mask[box].astype(np.uint8)
+    if cfg.mask_erosion > 0 and m.size:
+        m = cv2.erode(m, np.ones((2 * cfg.mask_erosion + 1,) * 2, np.uint8))
+    return m > 0
+
+
+def remasked(obs: Observation, mask: np.ndarray, cfg: PreprocessConfig) -> Observation:
+    """``obs``'s frame preprocessed with another ``mask``, the same as `preprocess` gives: when the mask's crop is
+    ``obs``'s, the filtered depth, points and normals are those of ``obs`` (they depend on the crop only) and only
+    the mask's pixels are found again."""
+    box = crop_box(mask, cfg)
+    if box != obs.box or obs.crop_trusted is None:
+        return preprocess(obs.frame, mask, cfg, obs.mask_given)
+    valid = obs.crop_trusted & _mask_pixels(mask, box, cfg)
+    return Observation(obs.frame, mask, box, obs.crop_depth, obs.crop_xyz, obs.crop_normals, valid, obs.mask_given,
+                       obs.crop_trusted)
+
+
 def preprocess(frame: Frame, mask: np.ndarray, cfg: PreprocessConfig, mask_given: bool = True) -> Observation:
     """Filter depth, compute normals and keep instrument pixels with trustworthy geometry, in a crop around the mask;
     ``mask_given`` says whether ``mask`` came with the frame. Worked on one component plane at a time."""
-    box = mask_bbox(mask, margin=max(cfg.bilateral_d, 2) + 2) or (slice(0, 0), slice(0, 0))
+    box = crop_box(mask, cfg)
     rs, cs = box
     d = frame.depth[rs, cs].astype(np.float32)
     d = np.where((d > cfg.min_depth) & (d < cfg.max_depth), d, np.float32(0))
@@ -190,9 +216,6 @@ def preprocess(frame: Frame, mask: np.ndarray, cfg: PreprocessConfig, mask_given
         # The filter mixes in invalid zeros at hole borders: keep only pixels it changed little.
         good &= np.abs(f - d) < 3 * cfg.bilateral_sigma_depth
         d = np.where(good, f, np.float32(0))
-    m = mask[rs, cs].astype(np.uint8)
-    if cfg.mask_erosion > 0 and m.size:
-        m = cv2.erode(m, np.ones((2 * cfg.mask_erosion + 1,) * 2, np.uint8))
     x, y = (c.astype(np.float32) for c in depth_to_xy(d, frame.K, (rs.start, cs.start)))
     n = normals_from_planes(x, y, d, cfg.normal_step)
     # A normal is trusted only where the neighbours it is made from have depth on the same surface.
@@ -205,5 +228,7 @@ def preprocess(frame: Frame, mask: np.ndarray, cfg: PreprocessConfig, mask_given
     dn[c] &= (np.abs(d[up] - d[down]) < 0.02) & (np.abs(d[left] - d[right]) < 0.02)
     length = np.maximum(np.sqrt(x * x + y * y + d * d), np.float32(1e-9))
     cos = -((x / length) * n[0] + (y / length) * n[1] + (d / length) * n[2])  # the normal against the viewing ray
-    ok = dn & (m > 0) & (cos > np.cos(np.radians(cfg.max_grazing_deg)))
-    return Observation(frame, mask, box, d, np.stack([x, y, d], axis=-1), np.stack(n, axis=-1), ok, mask_given)
+    trusted = dn & (cos > np.cos(np.radians(cfg.max_grazing_deg)))
+    ok = trusted & _mask_pixels(mask, box, cfg)
+    return Observation(frame, mask, box, d, np.stack([x, y, d], axis=-1), np.stack(n, axis=-1), ok, mask_given,
+                       trusted)

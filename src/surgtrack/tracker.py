@@ -49,7 +49,7 @@ from .masking import (
 from .memory_pool import Keyframe, MemoryPool
 from .model import InstrumentModel
 from .posture_graph import Coverage, FeatureEdge, FreeSpace, GraphNode, GridPoints, optimize_graph
-from .preprocess import MaskEdge, Observation, preprocess
+from .preprocess import MaskEdge, Observation, preprocess, remasked
 from .ransac import plausible, ransac_pose, within
 from .registration import BackgroundFitter, InstrumentSDF
 from .tsdf import View
@@ -839,9 +839,9 @@ class SurgTracker:
     def _remasked(self, obs: Observation, node: _Node, edges: list) -> tuple[Observation, _Node]:
         """A frame that came without a mask, masked again at its tracked pose and its graph optimised once more
         (eqs. 7-11, the same feature edges): the mask predicted before tracking carries the prediction's error,
-        and parts of the instrument it left out pull the pose towards the prediction."""
-        again = preprocess(obs.frame, self._predicted_mask(obs.frame, node.pose), self.cfg.preprocess,
-                           mask_given=False)
+        and parts of the instrument it left out pull the pose towards the prediction. In the same crop the frame's
+        depth filtering and keypoints are not done again (`preprocess.remasked`, `FeatureExtractor`)."""
+        again = remasked(obs, self._predicted_mask(obs.frame, node.pose), self.cfg.preprocess)
         if again.n_valid < self.cfg.failure.min_pixels:
             return obs, node
         second = self._node(again, self.extractor(again), node.pose)
