@@ -71,26 +71,32 @@ class _Counting:
 
 @pytest.mark.parametrize("kind", ["sift", "orb", "xfeat"])
 def test_a_frame_masked_again_in_its_crop_gets_what_a_fresh_detection_gives(kind: str):
-    """The tracker masks a frame again at its tracked pose (`preprocess.remasked`): in the same crop SIFT and XFeat
-    take the keypoints they found on the first mask and keep those on the second; the result is a fresh detection's."""
+    """The tracker masks a frame again at its tracked pose (`preprocess.remasked`): in the same crop XFeat takes the
+    keypoints it found in the crop, SIFT those it found on the first mask when the second lies within it; ORB, and
+    SIFT on a mask that reaches beyond the first, detect again. Each result is that of a fresh detection."""
     mask = np.zeros((H, W), bool)
     mask[70:170, 90:230] = True
-    second = mask.copy()
-    second[100:140, 120:200] = False  # the same box, another mask
+    mask[100:140, 120:200] = False
+    within, beyond = mask.copy(), mask.copy()
+    within[80:160, 100:120] = False  # the same box, a mask within the first
+    beyond[100:140, 120:200] = True  # the same box, a mask beyond the first
     obs = observation(0, mask)
-    again = remasked(obs, second, PreprocessConfig())
     extract = FeatureExtractor(kind, max_keypoints=400)
     if kind != "xfeat":
         extract._cv = _Counting(extract._cv)
-    first, f = extract(obs), extract(again)
-    fresh = FeatureExtractor(kind, max_keypoints=400)(again)
-    assert 0 < len(f) < len(first)
-    for name in ("uv", "desc", "xyz", "normals"):
-        assert np.array_equal(getattr(f, name), getattr(fresh, name)), name
-    if kind != "xfeat":
-        assert extract._cv.calls == (1 if kind == "sift" else 2)  # ORB masks before it ranks: it detects again
+    first = extract(obs)
+    for second, detections in ((within, {"sift": 1, "orb": 2}), (beyond, {"sift": 2, "orb": 3})):
+        again = remasked(obs, second, PreprocessConfig())
+        f, fresh = extract(again), FeatureExtractor(kind, max_keypoints=400)(again)
+        assert len(f) > 0 and len(f) != len(first)
+        for name in ("uv", "desc", "xyz", "normals"):
+            assert np.array_equal(getattr(f, name), getattr(fresh, name)), name
+        if kind != "xfeat":
+            assert extract._cv.calls == detections[kind]
+    if kind == "sift":
+        calls = extract._cv.calls
         extract(observation(6, mask))  # another frame: detected anew
-        assert extract._cv.calls == (2 if kind == "sift" else 3)
+        assert extract._cv.calls == calls + 1
 
 
 def test_sift_keypoints_on_the_mask_are_those_of_a_masked_detection():

