@@ -69,14 +69,17 @@ def abba(seqs: list[Path], run: Callable[[str, Path], tuple[int, float]], repeat
     print(f"{'all':<18} {fps['A']:10.2f} {fps['B']:10.2f}  {fps['B'] / fps['A']:.3f}")
 
 
-# A whole tracking run for `child_run`, with the default configuration; argv[1]: the sequence; per-frame masks, or the
-# first frame's mask only when the last argument is --first-mask-only.
+# A whole tracking run for `child_run`; argv[1]: the sequence; the default configuration, or that of the JSON file an
+# argument --config=PATH names; per-frame masks, or the first frame's mask only with an argument --first-mask-only.
 TRACK_RUN = """
 import json, sys, tempfile
+from surgtrack.config import TrackerConfig
 from surgtrack.io import open_sequence
 from surgtrack.pipeline import track_sequence
+named = [a.split("=", 1)[1] for a in sys.argv if a.startswith("--config=")]
+config = TrackerConfig.from_dict(json.load(open(named[0]))) if named else None
 with tempfile.TemporaryDirectory() as out:
-    s = track_sequence(open_sequence(sys.argv[1]), out, first_mask_only=sys.argv[-1] == "--first-mask-only")
+    s = track_sequence(open_sequence(sys.argv[1]), out, config, first_mask_only="--first-mask-only" in sys.argv)
 print(json.dumps({"frames": s.frames, "seconds": s.seconds}))
 """
 
