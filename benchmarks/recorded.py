@@ -73,11 +73,12 @@ def abba(seqs: list[Path], run: Callable[[str, Path], tuple[int, float]], repeat
 # argument --config=PATH names; per-frame masks, or the first frame's mask only with an argument --first-mask-only.
 TRACK_RUN = """
 import json, sys, tempfile
+from pathlib import Path
 from surgtrack.config import TrackerConfig
 from surgtrack.io import open_sequence
 from surgtrack.pipeline import track_sequence
 named = [a.split("=", 1)[1] for a in sys.argv if a.startswith("--config=")]
-config = TrackerConfig.from_dict(json.load(open(named[0]))) if named else None
+config = TrackerConfig.from_dict(json.loads(Path(named[0]).read_text())) if named else None
 with tempfile.TemporaryDirectory() as out:
     s = track_sequence(open_sequence(sys.argv[1]), out, config, first_mask_only="--first-mask-only" in sys.argv)
 print(json.dumps({"frames": s.frames, "seconds": s.seconds}))

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from .io import Frame
 from .preprocess import Observation, mask_bbox
 
 
@@ -30,6 +31,22 @@ class Features:
 
     def subset(self, idx: np.ndarray) -> Features:
         return Features(self.uv[idx], self.desc[idx], self.xyz[idx], self.normals[idx])
+
+
+@dataclass
+class _Detection:
+    """A detector's keypoints in one frame's crop: pixels (u, v) of the enlarged crop and descriptors, and the
+    detection mask they were found on (SIFT describes no keypoint off it; XFeat's cover the crop)."""
+
+    frame: Frame
+    box: tuple[slice, slice]
+    on: np.ndarray  # (h, w) bool, the enlarged crop's detection mask
+    uv: np.ndarray
+    desc: np.ndarray
+
+    def covers(self, frame: Frame, box: tuple[slice, slice], on: np.ndarray, whole_crop: bool) -> bool:
+        """Whether these are the keypoints a detection on ``on`` in ``frame``'s crop ``box`` would rank."""
+        return frame is self.frame and box == self.box and (whole_crop or not (on & ~self.on).any())
 
 
 class FeatureExtractor:
@@ -51,7 +68,7 @@ class FeatureExtractor:
             self.norm = cv2.NORM_L2
         else:
             raise ValueError(f"unknown feature type {kind!r} (sift, orb, xfeat)")
-        self._last: tuple | None = None  # (frame, box, detection mask, keypoints, descriptors), SIFT and XFeat
+        self._last: _Detection | None = None  # SIFT's and XFeat's last detection
 
     def __call__(self, obs: Observation) -> Features:
         box = mask_bbox(obs.mask, margin=8)
@@ -94,11 +111,8 @@ class FeatureExtractor:
         A later mask of the same frame and crop takes the keypoints found before: XFeat's are every keypoint of the
         crop, SIFT's those on the mask they were found with (it describes no others), so SIFT detects again unless
         the new mask lies within that one."""
-        last = self._last
-        if (last is not None and last[0] is obs.frame and last[1] == box
-                and (self.kind == "xfeat" or not ((detect_mask > 0) & ~last[2]).any())):
-            uv, desc = last[3], last[4]
-        else:
+        on = detect_mask > 0
+        if self._last is None or not self._last.covers(obs.frame, box, on, self.kind == "xfeat"):
             image = self._crop_image(obs, box, scale)
             if self.kind == "xfeat":
                 uv, desc = self._detect_xfeat(image)
@@ -106,20 +120,20 @@ class FeatureExtractor:
                 kps, desc = self._cv.detectAndCompute(image, detect_mask)
                 uv = np.array([k.pt for k in kps], np.float32).reshape(-1, 2)
                 desc = np.zeros((0, 128), np.float32) if desc is None else desc
-            self._last = (obs.frame, box, detect_mask > 0, uv, desc)
-        inside = self._on_mask(uv, detect_mask)
-        return uv[inside], desc[inside]
+            self._last = _Detection(obs.frame, box, on, uv, desc)
+        inside = self._on_mask(self._last.uv, on)
+        return self._last.uv[inside], self._last.desc[inside]
 
-    def _on_mask(self, uv: np.ndarray, detect_mask: np.ndarray) -> np.ndarray:
+    def _on_mask(self, uv: np.ndarray, on: np.ndarray) -> np.ndarray:
         """Which keypoints lie on the (enlarged) detection mask: SIFT's pixel as OpenCV's mask filter takes it
         (coordinates plus 0.5, truncated), XFeat's rounded."""
-        h, w = detect_mask.shape
+        h, w = on.shape
         if self.kind == "xfeat":
             ui, vi = np.round(uv[:, 0]).astype(int), np.round(uv[:, 1]).astype(int)
         else:
             ui, vi = (uv[:, 0] + np.float32(0.5)).astype(int), (uv[:, 1] + np.float32(0.5)).astype(int)
         inside = (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
-        inside[inside] = detect_mask[vi[inside], ui[inside]] > 0
+        inside[inside] = on[vi[inside], ui[inside]]
         return inside
 
     def _detect_xfeat(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

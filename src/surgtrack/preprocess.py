@@ -31,8 +31,8 @@ class Observation:
     crop_xyz: np.ndarray  # (h, w, 3) float32 camera-frame points
     crop_normals: np.ndarray  # (h, w, 3) float32 camera-frame unit normals (0 where unknown)
     crop_valid: np.ndarray  # (h, w) bool: instrument pixel with trusted depth and normal
+    crop_trusted: np.ndarray  # (h, w) bool: trusted depth and normal, on the mask or not (`remasked`)
     mask_given: bool = True  # the mask came with the frame (False: predicted from the model or a colour region)
-    crop_trusted: np.ndarray | None = None  # (h, w) bool: trusted depth and normal, mask or not (`remasked`)
 
     @property
     def K(self) -> np.ndarray:
@@ -196,11 +196,11 @@ def remasked(obs: Observation, mask: np.ndarray, cfg: PreprocessConfig) -> Obser
     ``obs``'s, the filtered depth, points and normals are those of ``obs`` (they depend on the crop only) and only
     the mask's pixels are found again."""
     box = crop_box(mask, cfg)
-    if box != obs.box or obs.crop_trusted is None:
+    if box != obs.box:
         return preprocess(obs.frame, mask, cfg, obs.mask_given)
     valid = obs.crop_trusted & _mask_pixels(mask, box, cfg)
-    return Observation(obs.frame, mask, box, obs.crop_depth, obs.crop_xyz, obs.crop_normals, valid, obs.mask_given,
-                       obs.crop_trusted)
+    return Observation(obs.frame, mask, box, obs.crop_depth, obs.crop_xyz, obs.crop_normals, valid, obs.crop_trusted,
+                       obs.mask_given)
 
 
 def preprocess(frame: Frame, mask: np.ndarray, cfg: PreprocessConfig, mask_given: bool = True) -> Observation:
@@ -230,5 +230,5 @@ def preprocess(frame: Frame, mask: np.ndarray, cfg: PreprocessConfig, mask_given
     cos = -((x / length) * n[0] + (y / length) * n[1] + (d / length) * n[2])  # the normal against the viewing ray
     trusted = dn & (cos > np.cos(np.radians(cfg.max_grazing_deg)))
     ok = trusted & _mask_pixels(mask, box, cfg)
-    return Observation(frame, mask, box, d, np.stack([x, y, d], axis=-1), np.stack(n, axis=-1), ok, mask_given,
-                       trusted)
+    return Observation(frame, mask, box, d, np.stack([x, y, d], axis=-1), np.stack(n, axis=-1), ok, trusted,
+                       mask_given)

@@ -695,7 +695,8 @@ class SurgTracker:
         elif cfg.free_space_background > 0 and self._given.any():
             points = self.model_points[self._given]
             d = obs.frame.depth
-            near = d < transform(node.pose, self.model_points)[:, 2].max() + cfg.free_space_background
+            far = float((self.model_points @ node.pose[2, :3]).max()) + node.pose[2, 3]  # the model's furthest z
+            near = d < far + cfg.free_space_background
             edge = MaskEdge.of(obs.mask | ((d > 0) & near))
         else:
             return None
