@@ -7,7 +7,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from surgtrack.geometry import inv_T, make_T, so3_exp, transform
-from surgtrack.global_registration import global_register, icp_from
+from surgtrack.global_registration import Described, global_register, icp_from
 
 
 def shaft(rng: np.random.Generator, n: int, length: float) -> np.ndarray:
@@ -51,6 +51,20 @@ def test_the_same_call_gives_the_same_poses():
     for _ in range(5):
         assert all(np.array_equal(a, b) for (a, _), (b, _) in zip(global_register(view, model, seeds=range(4)), first,
                                                                   strict=True))
+
+
+def test_a_model_described_once_registers_as_the_model_itself():
+    """The tracker describes its model once for every re-localisation until the model changes: the poses are those
+    of the model's points given each time, on several frames in turn."""
+    rng = np.random.default_rng(3)
+    model = shaft(rng, 6000, 0.12)
+    described = Described.of(model)
+    for rot in ([0.4, -0.9, 0.3], [-1.2, 0.2, 0.5]):
+        view = partial_view(rng, model, make_T(so3_exp(np.array(rot)), np.array([0.02, -0.01, 0.3])))
+        given = global_register(view, model, seeds=range(3))
+        assert len(given) == 3
+        for (a, fa), (b, fb) in zip(global_register(view, described, seeds=range(3)), given, strict=True):
+            assert np.array_equal(a, b) and fa == fb
 
 
 def test_icp_pulls_in_a_pose_that_moved_centimetres():

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
+from dataclasses import dataclass
 
 import numpy as np
 import open3d as o3d
@@ -61,12 +62,25 @@ def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, max_dists: Seq
     return orthonormalize(inv_T(c) @ T @ c), fitness
 
 
-def _cloud(points: np.ndarray, voxel: float) -> tuple[o3d.geometry.PointCloud, _REG.Feature]:
-    pcd = point_cloud(points, voxel=voxel)
-    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2.5 * voxel, max_nn=30))
-    fpfh = _REG.compute_fpfh_feature(
-        pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel, max_nn=100))
-    return pcd, fpfh
+@dataclass(frozen=True)
+class Described:
+    """Points voxel-downsampled, with normals and FPFH features: one side of `global_register`. The model's side
+    is the same on every re-localisation until the model changes, so a caller may describe it once."""
+
+    source: np.ndarray  # the points described, before the downsampling (identity tells a caller it is current)
+    voxel: float
+    cloud: o3d.geometry.PointCloud
+    fpfh: _REG.Feature
+
+    @classmethod
+    @one_thread()
+    def of(cls, points: np.ndarray, voxel: float = 0.004) -> Described:
+        o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+        pcd = point_cloud(points, voxel=voxel)
+        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2.5 * voxel, max_nn=30))
+        fpfh = _REG.compute_fpfh_feature(
+            pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel, max_nn=100))
+        return cls(points, voxel, pcd, fpfh)
 
 
 def overlap(model_tree: cKDTree, pose: np.ndarray, points_cam: np.ndarray, dist: float) -> float:
@@ -76,16 +90,20 @@ def overlap(model_tree: cKDTree, pose: np.ndarray, points_cam: np.ndarray, dist:
 
 
 @one_thread()
-def global_register(points_cam: np.ndarray, model_obj: np.ndarray, voxel: float = 0.004, seeds: Sequence[int] = (0,),
-                    iterations: int = 50_000) -> list[tuple[np.ndarray, float]]:
+def global_register(points_cam: np.ndarray, model_obj: np.ndarray | Described, voxel: float = 0.004,
+                    seeds: Sequence[int] = (0,), iterations: int = 50_000) -> list[tuple[np.ndarray, float]]:
     """Poses (object-to-camera) that lay the model on the frame's points, one per RANSAC seed, each with the fraction
     of those points it explains (within 2 voxels); empty when there are too few points. The clouds and their FPFH
-    features are computed once for all seeds."""
-    if len(points_cam) < 30 or len(model_obj) < 30:
+    features are computed once for all seeds; the model's may come described already (`Described`, same voxel)."""
+    model = model_obj.source if isinstance(model_obj, Described) else model_obj
+    if len(points_cam) < 30 or len(model) < 30:
         return []
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
-    src, src_f = _cloud(model_obj, voxel)
-    dst, dst_f = _cloud(points_cam, voxel)
+    if not isinstance(model_obj, Described) or model_obj.voxel != voxel:
+        model_obj = Described.of(model, voxel)
+    src, src_f = model_obj.cloud, model_obj.fpfh
+    dst_d = Described.of(points_cam, voxel)
+    dst, dst_f = dst_d.cloud, dst_d.fpfh
     if len(src.points) < 10 or len(dst.points) < 10:
         return []
     gate = 2.0 * voxel
