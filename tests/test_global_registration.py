@@ -7,7 +7,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from surgtrack.geometry import inv_T, make_T, so3_exp, transform
-from surgtrack.global_registration import Described, global_register, icp_from
+from surgtrack.global_registration import FpfhCloud, global_register, icp_from
 
 
 def shaft(rng: np.random.Generator, n: int, length: float) -> np.ndarray:
@@ -53,12 +53,12 @@ def test_the_same_call_gives_the_same_poses():
                                                                   strict=True))
 
 
-def test_a_model_described_once_registers_as_the_model_itself():
-    """The tracker describes its model once for every re-localisation until the model changes: the poses are those
-    of the model's points given each time, on several frames in turn."""
+def test_a_model_whose_features_were_computed_once_registers_as_the_model_itself():
+    """The tracker computes its model's FPFH features once for every re-localisation until the model changes: the
+    poses are those of the model's points given each time, on several frames in turn."""
     rng = np.random.default_rng(3)
     model = shaft(rng, 6000, 0.12)
-    described = Described.of(model)
+    described = FpfhCloud.of(model)
     for rot in ([0.4, -0.9, 0.3], [-1.2, 0.2, 0.5]):
         view = partial_view(rng, model, make_T(so3_exp(np.array(rot)), np.array([0.02, -0.01, 0.3])))
         given = global_register(view, model, seeds=range(3))

@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 import surgtrack.tracker
 from surgtrack.config import TrackerConfig
 from surgtrack.geometry import inv_T, make_T, project, rotation_angle_deg, transform
+from surgtrack.global_registration import FpfhCloud
 from surgtrack.io import open_sequence
 from surgtrack.masking import render_depth
 from surgtrack.metrics import auc, evaluate
@@ -222,6 +223,28 @@ def test_a_long_loss_without_masks_is_searched_on_every_few_frames_only(synth_se
     assert (empty.status, empty.reason) == (LOST, HIDDEN)
     assert not tracker._relocalisation_due()  # a mask-less frame would not be searched now; this one has its mask
     assert tracker.track(frame, frame.mask).status == RELOCALISED
+
+
+def test_relocalisation_registers_against_the_model_as_it_is_now(synth_seq):
+    """Global registration after a loss uses the model's FPFH features computed once (a loss tries several regions
+    a frame against the same model), and computed again once keyframes have added points to the model: never the
+    features of a model the tracker no longer has."""
+    seq = open_sequence(synth_seq)
+    cfg = TrackerConfig()
+    cfg.sdf.enabled = False
+    tracker = SurgTracker(cfg)
+    tracker.register(seq[0], seq[0].mask)
+    first = tracker._model_features()
+    assert tracker._model_features() is first
+    before = tracker.model_points
+    for i in range(1, len(seq)):
+        tracker.track(seq[i], None)
+        if tracker.model_points is not before:
+            break
+    assert tracker.model_points is not before and len(tracker.model_points) > len(before)
+    now = tracker._model_features()
+    assert now is not first and now.source is tracker.model_points
+    assert np.array_equal(np.asarray(now.cloud.points), np.asarray(FpfhCloud.of(tracker.model_points).cloud.points))
 
 
 def test_without_masks_a_nearer_look_alike_does_not_take_the_relocalisation(synth_seq):

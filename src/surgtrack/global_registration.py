@@ -63,18 +63,19 @@ def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray, max_dists: Seq
 
 
 @dataclass(frozen=True)
-class Described:
-    """Points voxel-downsampled, with normals and FPFH features: one side of `global_register`. The model's side
-    is the same on every re-localisation until the model changes, so a caller may describe it once."""
+class FpfhCloud:
+    """Points voxel-downsampled, with normals and FPFH features: one side of `global_register`. The model's side is
+    the same on every re-localisation until the model changes, so a caller may compute it once."""
 
-    source: np.ndarray  # the points described, before the downsampling (identity tells a caller it is current)
+    source: np.ndarray  # the points as given, before the downsampling (a caller tells by identity that it is current)
     voxel: float
     cloud: o3d.geometry.PointCloud
     fpfh: _REG.Feature
 
     @classmethod
     @one_thread()
-    def of(cls, points: np.ndarray, voxel: float = 0.004) -> Described:
+    def of(cls, points: np.ndarray, voxel: float = 0.004) -> FpfhCloud:
+        """``points`` downsampled to ``voxel`` (m), normals within 2.5 voxels, FPFH within 5."""
         o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
         pcd = point_cloud(points, voxel=voxel)
         pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2.5 * voxel, max_nn=30))
@@ -90,20 +91,19 @@ def overlap(model_tree: cKDTree, pose: np.ndarray, points_cam: np.ndarray, dist:
 
 
 @one_thread()
-def global_register(points_cam: np.ndarray, model_obj: np.ndarray | Described, voxel: float = 0.004,
+def global_register(points_cam: np.ndarray, model_obj: np.ndarray | FpfhCloud, voxel: float = 0.004,
                     seeds: Sequence[int] = (0,), iterations: int = 50_000) -> list[tuple[np.ndarray, float]]:
     """Poses (object-to-camera) that lay the model on the frame's points, one per RANSAC seed, each with the fraction
     of those points it explains (within 2 voxels); empty when there are too few points. The clouds and their FPFH
-    features are computed once for all seeds; the model's may come described already (`Described`, same voxel)."""
-    model = model_obj.source if isinstance(model_obj, Described) else model_obj
-    if len(points_cam) < 30 or len(model) < 30:
+    features are computed once for all seeds; the model's may come computed already (`FpfhCloud`)."""
+    given = model_obj if isinstance(model_obj, FpfhCloud) else None
+    model_pts = given.source if given is not None else model_obj
+    if len(points_cam) < 30 or len(model_pts) < 30:
         return []
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
-    if not isinstance(model_obj, Described) or model_obj.voxel != voxel:
-        model_obj = Described.of(model, voxel)
-    src, src_f = model_obj.cloud, model_obj.fpfh
-    dst_d = Described.of(points_cam, voxel)
-    dst, dst_f = dst_d.cloud, dst_d.fpfh
+    model = given if given is not None and given.voxel == voxel else FpfhCloud.of(model_pts, voxel)
+    frame = FpfhCloud.of(points_cam, voxel)
+    src, src_f, dst, dst_f = model.cloud, model.fpfh, frame.cloud, frame.fpfh
     if len(src.points) < 10 or len(dst.points) < 10:
         return []
     gate = 2.0 * voxel

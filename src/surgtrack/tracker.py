@@ -34,7 +34,7 @@ from .geometry import (
     transform,
     voxel_downsample,
 )
-from .global_registration import Described, global_register, icp_from
+from .global_registration import FpfhCloud, global_register, icp_from
 from .io import Frame
 from .masking import (
     ColourModel,
@@ -203,7 +203,7 @@ class SurgTracker:
         self._field: InstrumentSDF | None = None  # the field refitted in line when there is no background fitter
         self._keyframes_added = 0  # by this tracker; sets the refit cadence (sdf.refit_every)
         self.model_points: np.ndarray | None = None  # the keyframes' points in the object frame
-        self._described: Described | None = None  # model_points described for global registration
+        self._model_fpfh: FpfhCloud | None = None  # model_points with their FPFH features (_model_features)
         self._model_tree: cKDTree | None = None
         # per model point: frames that saw past it, frames that saw it or past it, whether a given mask made it
         self._past, self._views, self._given = np.zeros(0, int), np.zeros(0, int), np.zeros(0, bool)
@@ -528,7 +528,7 @@ class SurgTracker:
             points = obs.points()[0]
             cands.append((icp_from(points, self.model_points, last), [], 0))
             seeds = range(self.cfg.seed, self.cfg.seed + self.cfg.failure.relocalise_candidates)
-            for pose, explained in global_register(points, self._described_model(), seeds=seeds):
+            for pose, explained in global_register(points, self._model_features(), seeds=seeds):
                 if explained >= self.cfg.failure.min_global_overlap:
                     cands.append((pose, [], 0))
         return cands
@@ -601,12 +601,12 @@ class SurgTracker:
             cands.append((last, [], 0))
         return self._best_candidate(obs, feats, cands, last)
 
-    def _described_model(self) -> Described:
-        """The model's points described for `global_register`, again only when the model has changed (its points
-        are replaced, never changed in place): a loss tries several regions a frame, each against the same model."""
-        if self._described is None or self._described.source is not self.model_points:
-            self._described = Described.of(self.model_points)
-        return self._described
+    def _model_features(self) -> FpfhCloud:
+        """The model's FPFH features for `global_register`, computed again only when the model has changed (its
+        points are replaced, never changed in place): a loss tries several regions a frame against the same model."""
+        if self._model_fpfh is None or self._model_fpfh.source is not self.model_points:
+            self._model_fpfh = FpfhCloud.of(self.model_points)
+        return self._model_fpfh
 
     def _relocalisation_due(self) -> bool:
         """Whether to try re-localising this lost frame, which came without a mask (step 5): every frame of the
