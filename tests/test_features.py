@@ -99,29 +99,6 @@ def test_a_frame_masked_again_in_its_crop_gets_what_a_fresh_detection_gives(kind
         assert extract._cv.calls == calls + 1
 
 
-def test_on_a_mask_the_tracker_made_sift_serves_a_second_mask_reaching_a_little_further():
-    """On a mask the tracker made (not given), SIFT also describes the keypoints up to `REMASK_REACH` pixels beyond
-    it: the mask gets the keypoints a given one gets, and the mask made again at the tracked pose, in the same crop
-    and reaching 3 pixels further, is served without detecting again, with what a fresh detection gives."""
-    mask = np.zeros((H, W), bool)
-    mask[70:170, 90:230] = True
-    mask[100:140, 120:200] = False
-    further = mask.copy()
-    further[100:140, 120:123] = True  # the same box; beyond the 2 pixels the detection mask adds to the first
-    frame = observation(0, mask).frame
-    made = preprocess(frame, mask, PreprocessConfig(), mask_given=False)
-    extract = FeatureExtractor("sift", max_keypoints=400)
-    extract._cv = _Counting(extract._cv)
-    first, given = extract(made), FeatureExtractor("sift", max_keypoints=400)(observation(0, mask))
-    for name in ("uv", "desc", "xyz", "normals"):
-        assert np.array_equal(getattr(first, name), getattr(given, name)), name
-    again = remasked(made, further, PreprocessConfig())
-    second, fresh = extract(again), FeatureExtractor("sift", max_keypoints=400)(again)
-    assert extract._cv.calls == 1 and len(second) > len(first)
-    for name in ("uv", "desc", "xyz", "normals"):
-        assert np.array_equal(getattr(second, name), getattr(fresh, name)), name
-
-
 def test_sift_keypoints_on_the_mask_are_those_of_a_masked_detection():
     """SIFT ranks its keypoints over the whole crop and only then applies a mask, so detecting on the crop and keeping
     the keypoints on the mask gives OpenCV's masked detection (keypoints, order, descriptors)."""

@@ -33,9 +33,6 @@ class Features:
         return Features(self.uv[idx], self.desc[idx], self.xyz[idx], self.normals[idx])
 
 
-REMASK_REACH = 4  # pixels: how far beyond a predicted mask SIFT also describes keypoints (`_keypoints`)
-
-
 @dataclass
 class _Detection:
     """A detector's keypoints in one frame's crop: pixels (u, v) of the enlarged crop and descriptors, and the
@@ -113,22 +110,17 @@ class FeatureExtractor:
         """SIFT or XFeat keypoints on the detection mask (pixels (u, v) of the enlarged crop) and their descriptors.
         A later mask of the same frame and crop takes the keypoints found before: XFeat's are every keypoint of the
         crop, SIFT's those on the mask they were found with (it describes no others), so SIFT detects again unless
-        the new mask lies within that one. On a mask the tracker made, SIFT is run on the mask grown by
-        `REMASK_REACH` pixels, and what it finds beyond the mask is kept for the second mask only: a ranking over
-        the whole crop gives the same keypoints on the mask either way."""
+        the new mask lies within that one."""
         on = detect_mask > 0
         if self._last is None or not self._last.covers(obs.frame, box, on, self.kind == "xfeat"):
             image = self._crop_image(obs, box, scale)
             if self.kind == "xfeat":
                 uv, desc = self._detect_xfeat(image)
             else:
-                if not obs.mask_given:  # the mask made again at the tracked pose then mostly lies within this one
-                    grow = 2 * round(REMASK_REACH * scale) + 1
-                    detect_mask = cv2.dilate(detect_mask, np.ones((grow, grow), np.uint8))
                 kps, desc = self._cv.detectAndCompute(image, detect_mask)
                 uv = np.array([k.pt for k in kps], np.float32).reshape(-1, 2)
                 desc = np.zeros((0, 128), np.float32) if desc is None else desc
-            self._last = _Detection(obs.frame, box, detect_mask > 0, uv, desc)
+            self._last = _Detection(obs.frame, box, on, uv, desc)
         inside = self._on_mask(self._last.uv, on)
         return self._last.uv[inside], self._last.desc[inside]
 
