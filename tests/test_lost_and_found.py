@@ -230,9 +230,7 @@ def test_relocalisation_registers_against_the_model_as_it_is_now(synth_seq):
     a frame against the same model), and computed again once keyframes have added points to the model: never the
     features of a model the tracker no longer has."""
     seq = open_sequence(synth_seq)
-    cfg = TrackerConfig()
-    cfg.sdf.enabled = False
-    tracker = SurgTracker(cfg)
+    tracker = SurgTracker(TrackerConfig.from_dict({"sdf": {"enabled": False}}))
     tracker.register(seq[0], seq[0].mask)
     first = tracker._model_features()
     assert tracker._model_features() is first
