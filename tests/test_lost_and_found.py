@@ -241,7 +241,7 @@ def test_relocalisation_registers_against_the_model_as_it_is_now(synth_seq):
             break
     assert tracker.model_points is not before and len(tracker.model_points) > len(before)
     now = tracker._model_features()
-    assert now is not first and now.source is tracker.model_points
+    assert now is not first and now.source is tracker.model_points and tracker._model_features() is now
     assert np.array_equal(np.asarray(now.cloud.points), np.asarray(FpfhCloud.of(tracker.model_points).cloud.points))
 
 

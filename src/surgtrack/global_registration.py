@@ -17,6 +17,7 @@ from scipy.spatial import cKDTree
 from .geometry import inv_T, make_T, orthonormalize, transform
 
 _REG = o3d.pipelines.registration
+FPFH_VOXEL = 0.004  # m: the clouds of global registration are downsampled to this before their FPFH features
 
 
 @contextmanager
@@ -67,14 +68,14 @@ class FpfhCloud:
     """Points voxel-downsampled, with normals and FPFH features: one side of `global_register`. The model's side is
     the same on every re-localisation until the model changes, so a caller may compute it once."""
 
-    source: np.ndarray  # the points as given, before the downsampling (a caller tells by identity that it is current)
+    source: np.ndarray  # the points as given, before the downsampling
     voxel: float
     cloud: o3d.geometry.PointCloud
     fpfh: _REG.Feature
 
     @classmethod
     @one_thread()
-    def of(cls, points: np.ndarray, voxel: float = 0.004) -> FpfhCloud:
+    def of(cls, points: np.ndarray, voxel: float = FPFH_VOXEL) -> FpfhCloud:
         """``points`` downsampled to ``voxel`` (m), normals within 2.5 voxels, FPFH within 5."""
         o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
         pcd = point_cloud(points, voxel=voxel)
@@ -91,7 +92,7 @@ def overlap(model_tree: cKDTree, pose: np.ndarray, points_cam: np.ndarray, dist:
 
 
 @one_thread()
-def global_register(points_cam: np.ndarray, model_obj: np.ndarray | FpfhCloud, voxel: float = 0.004,
+def global_register(points_cam: np.ndarray, model_obj: np.ndarray | FpfhCloud, voxel: float = FPFH_VOXEL,
                     seeds: Sequence[int] = (0,), iterations: int = 50_000) -> list[tuple[np.ndarray, float]]:
     """Poses (object-to-camera) that lay the model on the frame's points, one per RANSAC seed, each with the fraction
     of those points it explains (within 2 voxels); empty when there are too few points. The clouds and their FPFH

@@ -203,7 +203,7 @@ class SurgTracker:
         self._field: InstrumentSDF | None = None  # the field refitted in line when there is no background fitter
         self._keyframes_added = 0  # by this tracker; sets the refit cadence (sdf.refit_every)
         self.model_points: np.ndarray | None = None  # the keyframes' points in the object frame
-        self._model_fpfh: FpfhCloud | None = None  # model_points with their FPFH features (_model_features)
+        self._model_fpfh: FpfhCloud | None = None  # model_points with their FPFH features, once a loss needs them
         self._model_tree: cKDTree | None = None
         # per model point: frames that saw past it, frames that saw it or past it, whether a given mask made it
         self._past, self._views, self._given = np.zeros(0, int), np.zeros(0, int), np.zeros(0, bool)
@@ -254,7 +254,7 @@ class SurgTracker:
         if best is not None:
             pose, edges = best[1][0] @ best[0].pose, [(best[0], *best[1][1:])]
         else:
-            found = global_register(obs.points()[0], self.model_points, seeds=[self.cfg.seed])
+            found = global_register(obs.points()[0], self._model_features(), seeds=[self.cfg.seed])
             if not found:
                 raise ValueError(f"frame {obs.frame.id}: too few instrument points to find the model")
             pose, edges = self._slid_to_silhouette(found[0][0], obs), []
@@ -602,9 +602,9 @@ class SurgTracker:
         return self._best_candidate(obs, feats, cands, last)
 
     def _model_features(self) -> FpfhCloud:
-        """The model's FPFH features for `global_register`, computed again only when the model has changed (its
-        points are replaced, never changed in place): a loss tries several regions a frame against the same model."""
-        if self._model_fpfh is None or self._model_fpfh.source is not self.model_points:
+        """The model's FPFH features for `global_register`, computed once after each change of the model
+        (`_set_model_points`): a loss tries several regions a frame against the same model."""
+        if self._model_fpfh is None:
             self._model_fpfh = FpfhCloud.of(self.model_points)
         return self._model_fpfh
 
@@ -793,12 +793,17 @@ class SurgTracker:
             self._axis = long_axis(pts)
         if self.model_points is not None:
             pts = np.concatenate([self.model_points, pts])
-        self.model_points = voxel_downsample(pts, 0.002)  # the points kept come first, in their order
-        self._model_tree = cKDTree(self.model_points)
+        self._set_model_points(voxel_downsample(pts, 0.002))  # the points kept come first, in their order
         new = len(self.model_points) - len(self._past)
         self._past = np.concatenate([self._past, np.zeros(new, int)])
         self._views = np.concatenate([self._views, np.zeros(new, int)])
         self._given = np.concatenate([self._given, np.full(new, given)])
+
+    def _set_model_points(self, points: np.ndarray) -> None:
+        """The model's points, and what is derived from them: a k-d tree now, FPFH features when a loss needs them."""
+        self.model_points = points
+        self._model_tree = cKDTree(points)
+        self._model_fpfh = None
 
     def _carve(self, frame: Frame, pose: np.ndarray) -> None:
         """Free-space carving of the model, as TSDF fusion clears what has moved away: a point that a tracked frame
@@ -818,9 +823,8 @@ class SurgTracker:
         drop = ~self._given & (self._views >= c.carve_min_views) & (self._past > c.carve_ratio * self._views)
         if drop.any():
             keep = ~drop
-            self.model_points = self.model_points[keep]
+            self._set_model_points(self.model_points[keep])
             self._past, self._views, self._given = self._past[keep], self._views[keep], self._given[keep]
-            self._model_tree = cKDTree(self.model_points)
 
     def views(self, n: int | None = None) -> list[View]:
         """The keyframes as SDF views at their tracked poses (the bound of a joint refinement holds against these);
