@@ -132,21 +132,23 @@ def test_reading_is_lazy(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
 
 
 def test_frames_read_ahead_come_in_order_and_a_bad_one_raises_at_its_turn(tmp_path: Path):
-    """`Sequence.read_ahead` (the tracking loop's reader) gives the frames seq[i] gives, in order; an unreadable
-    frame raises its one-line error only once the frames before it have been handed over."""
+    """`Sequence.read_ahead` (the tracking loop's reader) gives the frames seq[i] gives, in order, each with what
+    ``prepare`` made of it; an unreadable frame raises its one-line error only once the frames before it have been
+    handed over."""
     root = make_sequence(tmp_path / "s", n=6)
     seq = open_sequence(root)
-    frames = list(seq.read_ahead(1))
-    assert [f.id for f in frames] == seq.ids[1:]
-    for i, f in enumerate(frames, start=1):
+    items = list(seq.read_ahead(1, prepare=lambda f: f.id))
+    assert [f.id for f, _ in items] == [made for _, made in items] == seq.ids[1:]
+    for i, (f, _) in enumerate(items, start=1):
         assert np.array_equal(f.rgb, seq[i].rgb) and np.array_equal(f.depth, seq[i].depth)
+    assert {made for _, made in seq.read_ahead(0)} == {None}
     (root / "rgb" / "000004.png").write_bytes(b"broken")
     got = []
     with raises(root / "rgb" / "000004.png", "unreadable image"):
-        for f in seq.read_ahead(0):
+        for f, _ in seq.read_ahead(0):
             got.append(f.id)
     assert got == seq.ids[:4]
-    assert [f.id for _, f in zip(range(2), seq.read_ahead(0), strict=False)] == seq.ids[:2]  # stopping early
+    assert [f.id for _, (f, _) in zip(range(2), seq.read_ahead(0), strict=False)] == seq.ids[:2]  # stopping early
 
 
 # ------------------------------------------------------------------------------------------------ bad input

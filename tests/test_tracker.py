@@ -15,7 +15,7 @@ from helpers import tracked
 
 from surgtrack.config import TrackerConfig
 from surgtrack.geometry import backproject, depth_to_xyz, make_T, transform
-from surgtrack.io import SequenceError, open_sequence, read_poses
+from surgtrack.io import SequenceError, format_pose, open_sequence, read_poses
 from surgtrack.metrics import evaluate
 from surgtrack.pipeline import RunSummary, track_sequence
 from surgtrack.tracker import (
@@ -153,6 +153,28 @@ def test_a_broken_frame_stops_the_run_with_its_name_and_keeps_the_poses_before(s
     with pytest.raises(SequenceError, match=rf"^{root / 'depth' / '000012.png'}: unreadable image"):
         track_sequence(open_sequence(root), tmp_path / "out", cfg)
     assert sorted(read_poses(tmp_path / "out" / "ob_in_cam")) == [f"{i:06d}" for i in range(12)]
+
+
+def test_frames_observed_ahead_give_the_poses_of_frames_observed_in_line(synth_seq, tmp_path):
+    """`track_sequence` preprocesses a frame that comes with its mask, and finds its features, in the reader's
+    thread while the frame before is tracked (`SurgTracker.observe`); the poses are those of a tracker that does it
+    all itself, frame by frame. An observation passed with another frame is refused."""
+    seq = open_sequence(synth_seq)
+    cfg = TrackerConfig()
+    cfg.sdf = replace(cfg.sdf, enabled=False)
+    track_sequence(seq, tmp_path / "out", cfg)
+    ahead = {p.stem: p.read_text() for p in (tmp_path / "out" / "ob_in_cam").glob("*.txt")}
+    tracker = SurgTracker(cfg)
+    in_line = {seq[0].id: format_pose(tracker.register(seq[0], seq[0].mask))}
+    for frame in list(seq)[1:]:
+        result = tracker.track(frame, frame.mask)
+        if result.pose is not None:
+            in_line[frame.id] = format_pose(result.pose)
+    assert len(in_line) >= 25 and ahead == in_line
+    frame, other = seq[3], seq[4]
+    assert tracker.observe(replace(frame, mask=None)) is None
+    with pytest.raises(ValueError, match="another frame"):
+        tracker.track(frame, frame.mask, tracker.observe(other))
 
 
 def test_no_graph_ablation_uses_ransac_only(synth_seq, tmp_path):

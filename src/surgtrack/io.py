@@ -14,16 +14,18 @@ import json
 import os
 import re
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
 
 import cv2
 import numpy as np
 import trimesh
 
 DEPTH_SCALE_MM = 0.001  # metres per depth unit of the DESIGN layout
+T = TypeVar("T")
 
 
 class SequenceError(ValueError):
@@ -130,20 +132,27 @@ class Sequence:
         for i in range(len(self)):
             yield self[i]
 
-    def read_ahead(self, start: int = 0, ahead: int = 2) -> Iterator[Frame]:
+    def read_ahead(self, start: int = 0, ahead: int = 2,
+                   prepare: Callable[[Frame], T] | None = None) -> Iterator[tuple[Frame, T | None]]:
         """The frames from ``start`` on, in order, each read and decoded in a background thread while the caller
-        works on the ones before (up to ``ahead`` frames early). Image decoding releases the GIL, so a tracker on
-        the main thread does not wait for files. An unreadable frame raises its SequenceError when its turn comes."""
+        works on the ones before (up to ``ahead`` frames early), with what ``prepare`` made of it in that thread
+        (None without ``prepare``). Image decoding releases the GIL, so a tracker on the main thread does not wait
+        for files. An unreadable frame raises its SequenceError when its turn comes."""
+
+        def read(i: int) -> tuple[Frame, T | None]:
+            frame = self[i]
+            return frame, None if prepare is None else prepare(frame)
+
         with ThreadPoolExecutor(1, thread_name_prefix="frame-reader") as reader:
-            pending = deque(reader.submit(self.__getitem__, i) for i in range(start, min(start + ahead, len(self))))
+            pending = deque(reader.submit(read, i) for i in range(start, min(start + ahead, len(self))))
             following = start + len(pending)
             try:
                 while pending:
-                    frame = pending.popleft().result()
+                    item = pending.popleft().result()
                     if following < len(self):
-                        pending.append(reader.submit(self.__getitem__, following))
+                        pending.append(reader.submit(read, following))
                         following += 1
-                    yield frame
+                    yield item
             finally:
                 for future in pending:  # the caller stopped early: read no further
                     future.cancel()

@@ -98,8 +98,11 @@ def track_sequence(
     tracker = tracker or SurgTracker(config)
     out = Path(out)
     summary = RunSummary()
+    # Frames that come with their mask are preprocessed and their features found in the reader's thread, while the
+    # frame before is tracked (`SurgTracker.observe`: it depends on the frame alone, so the poses are the same).
+    observe = tracker.observe if isinstance(tracker, SurgTracker) and not first_mask_only else None
     # closing: a run that stops on an error stops its frame reader too, not when the generator is collected
-    with ResultWriter(out, config.to_dict()) as writer, closing(seq.read_ahead(1)) as frames:
+    with ResultWriter(out, config.to_dict()) as writer, closing(seq.read_ahead(1, prepare=observe)) as frames:
         t0 = time.perf_counter()
         first = seq[0]
         assert first.mask is not None  # the readers guarantee a first-frame mask
@@ -112,8 +115,11 @@ def track_sequence(
         summary.add(0, registered)
         if on_frame is not None:
             on_frame(first, registered)
-        for i, frame in enumerate(frames, start=1):
-            result = tracker.track(frame, None if first_mask_only else frame.mask)
+        for i, (frame, observed) in enumerate(frames, start=1):
+            if observed is None:
+                result = tracker.track(frame, None if first_mask_only else frame.mask)
+            else:
+                result = tracker.track(frame, frame.mask, observed)
             writer.write(frame.id, result.pose, frame_record(result))
             summary.add(i, result)
             if on_frame is not None:

@@ -85,6 +85,16 @@ class TrackResult:
     reason: str = ""
 
 
+@dataclass(frozen=True)
+class Observed:
+    """A frame preprocessed with its given mask and its features (`SurgTracker.observe`; None when too few of its
+    points are trusted to track on), and the seconds each took."""
+
+    obs: Observation
+    features: Features | None
+    timings: dict[str, float]
+
+
 @dataclass(eq=False)
 class _Node:
     """A tracked frame as the graph and the pool see it."""
@@ -126,6 +136,11 @@ class _Clock:
         now = time.perf_counter()
         self.laps[name] = self.laps.get(name, 0.0) + now - self.t
         self.t = now
+
+    def add(self, laps: dict[str, float]) -> None:
+        """Count stages timed elsewhere (another thread) in."""
+        for name, seconds in laps.items():
+            self.laps[name] = self.laps.get(name, 0.0) + seconds
 
 
 def object_origin(points: np.ndarray) -> np.ndarray:
@@ -191,6 +206,7 @@ class SurgTracker:
     def __init__(self, config: TrackerConfig | None = None, model: InstrumentModel | None = None):
         self.cfg = config or TrackerConfig()
         self.extractor = FeatureExtractor(self.cfg.ransac.features, self.cfg.ransac.max_keypoints)
+        self._observer: FeatureExtractor | None = None  # observe()'s own: the extractor keeps its last detection
         self.pool = MemoryPool(self.cfg.pool)
         self.rng = np.random.default_rng(self.cfg.seed)
         self.recent: deque[_Node] = deque(maxlen=max(self.cfg.graph.adjacent, 1))
@@ -315,8 +331,28 @@ class SurgTracker:
         c = self.cfg.sdf
         return psi.mesh(keep_frac=c.mesh_floater, seen=self.model_points, seen_dist=c.mesh_seen * c.voxel_size)
 
-    def track(self, frame: Frame, mask: np.ndarray | None = None) -> TrackResult:
-        """One tracking step (Stage 2): preprocess, coarse pose (eq. 5), posture graph (eqs. 7-11), memory (eq. 6)."""
+    def observe(self, frame: Frame) -> Observed | None:
+        """The frame preprocessed with its given mask, and its features: the part of `track` that depends on the
+        frame alone, so that a caller can make the next frame's in another thread while this one is tracked (and
+        pass it to `track`). None for a frame without a mask. Not thread-safe with itself: one caller thread."""
+        if frame.mask is None:
+            return None
+        clock = _Clock()
+        obs = preprocess(frame, frame.mask, self.cfg.preprocess, mask_given=True)
+        clock.lap("preprocess")
+        if obs.n_valid < self.cfg.failure.min_pixels:  # `track` loses it before looking for features
+            return Observed(obs, None, clock.laps)
+        if self._observer is None:
+            self._observer = FeatureExtractor(self.cfg.ransac.features, self.cfg.ransac.max_keypoints)
+        features = self._observer(obs)
+        clock.lap("features")
+        return Observed(obs, features, clock.laps)
+
+    def track(self, frame: Frame, mask: np.ndarray | None = None, observed: Observed | None = None) -> TrackResult:
+        """One tracking step (Stage 2): preprocess, coarse pose (eq. 5), posture graph (eqs. 7-11), memory (eq. 6).
+        ``observed``: `observe(frame)`, made beforehand; ``mask`` is then the frame's mask."""
+        if observed is not None and (observed.obs.frame is not frame or mask is not frame.mask):
+            raise ValueError(f"frame {frame.id}: tracked with another frame's or mask's observation")
         clock = _Clock()
         if self.lost and mask is not None and not self._shows(frame, mask):
             return self._lose(clock, unseen(mask, self.cfg.failure.min_pixels))
@@ -327,7 +363,7 @@ class SurgTracker:
         if mask is None and self.lost and colour is not None:
             found = self._search(frame, colour, clock)
         else:
-            found = self._located(frame, mask, clock)
+            found = self._located(frame, mask, clock, observed)
         if isinstance(found, str):
             return self._lose(clock, found)
         obs, node, inliers = found
@@ -352,18 +388,23 @@ class SurgTracker:
 
     # -------------------------------------------------------------------------------------------------- stages
 
-    def _located(self, frame: Frame, mask: np.ndarray | None,
-                 clock: _Clock) -> tuple[Observation, _Node, int] | str:
-        """The frame's observation, its node at the tracked pose and the feature inlier count: coarse pose (eq. 5)
-        and posture graph (eqs. 7-11) while tracking, re-localisation (step 5) while lost; why not when lost."""
+    def _located(self, frame: Frame, mask: np.ndarray | None, clock: _Clock,
+                 observed: Observed | None = None) -> tuple[Observation, _Node, int] | str:
+        """The frame's observation (``observed``'s when given), its node at the tracked pose and the feature inlier
+        count: coarse pose (eq. 5) and posture graph (eqs. 7-11) while tracking, re-localisation (step 5) while
+        lost; why not when lost."""
         predicted = mask is None
         if predicted:
             mask = self._predicted_mask(frame, self.recent[-1].pose)
-        obs = preprocess(frame, mask, self.cfg.preprocess, mask_given=not predicted)
+        if observed is None:
+            obs = preprocess(frame, mask, self.cfg.preprocess, mask_given=not predicted)
+        else:
+            obs = observed.obs
+            clock.add(observed.timings)  # made beforehand, in another thread
         clock.lap("preprocess")
         if obs.n_valid < self.cfg.failure.min_pixels:
             return unseen(mask, self.cfg.failure.min_pixels)
-        feats = self.extractor(obs)
+        feats = self.extractor(obs) if observed is None else observed.features
         clock.lap("features")
         if self.lost:  # the candidates are refined by the posture graph as they compete
             found = self._relocalise(obs, feats)
