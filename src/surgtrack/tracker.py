@@ -3,6 +3,8 @@
     tracker = SurgTracker(TrackerConfig())
     pose = tracker.register(frame, mask)          # first frame: fixes the object frame
     result = tracker.track(frame, mask=None)      # every later frame
+    observed = tracker.observe(frame)             # a frame with its mask, ahead (another thread) ...
+    result = tracker.track(frame, frame.mask, observed)  # ... then tracked: the same result as track(frame, mask)
 
 The object frame has its origin at the centre of the first frame's masked point cloud (outliers removed) and axes
 parallel to the first camera's; poses are object-to-camera (x_cam = pose @ x_obj), metres.
