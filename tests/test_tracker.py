@@ -123,6 +123,39 @@ def test_a_pose_too_few_of_whose_points_lie_on_the_model_is_lost_as_unsure(synth
     assert result.confidence > 0.9
 
 
+def _padded(frame, share: float) -> np.ndarray:
+    """The frame's mask with ``share`` of its pixel count added from the background farthest from it."""
+    mask = frame.mask.copy()
+    background = np.argwhere(~mask & (frame.depth > 0))
+    far = np.linalg.norm(background - np.argwhere(mask).mean(axis=0), axis=1)
+    pick = background[np.argsort(-far)[: int(mask.sum() * share)]]
+    mask[pick[:, 0], pick[:, 1]] = True
+    return mask
+
+
+def test_a_pose_that_moved_far_with_much_of_the_frame_off_the_model_is_lost_as_unsure(synth_seq):
+    """A frame a third of whose points the model lacks is tracked at the instrument's pace (a part coming into
+    view), but not after a jump beyond ``ransac.check_jump_*``: below ``failure.moved_min_confidence`` that is a
+    pose carried off, lost as unsure. The same jump with a clean mask is tracked."""
+    seq = open_sequence(synth_seq)
+    cfg = TrackerConfig()
+    cfg.sdf.enabled = False
+
+    def after_ten() -> SurgTracker:
+        tracker = SurgTracker(cfg)
+        tracker.register(seq[0], seq[0].mask)
+        for i in range(1, 10):
+            assert tracker.track(seq[i], seq[i].mask).status == TRACKED
+        return tracker
+
+    result = after_ten().track(seq[10], _padded(seq[10], 0.6))
+    assert result.status == TRACKED and result.confidence < cfg.failure.moved_min_confidence
+    result = after_ten().track(seq[25], _padded(seq[25], 0.6))
+    assert (result.status, result.reason, result.pose) == (LOST, UNSURE, None)
+    assert cfg.failure.min_confidence < result.confidence < cfg.failure.moved_min_confidence
+    assert after_ten().track(seq[25], seq[25].mask).status == TRACKED
+
+
 def test_register_rejects_a_mask_without_depth(synth_seq):
     frame = open_sequence(synth_seq)[0]
     with pytest.raises(ValueError, match="instrument pixels"):

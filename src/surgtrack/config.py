@@ -126,7 +126,9 @@ class FailureConfig:
     relocalise_min_ncc: float = 0.2  # appearance: least intensity NCC with a keyframe that sees the frame (-1: off)
     appearance_depth_tol: float = 0.005  # m, a frame's point is seen by a keyframe when its depth agrees this well
     appearance_min_points: int = 100  # fewer points seen by every keyframe: no appearance check
-    min_confidence: float = 0.25
+    min_confidence: float = 0.25  # fewer of the frame's points on the model at the pose: lost (unsure)
+    moved_min_confidence: float = 0.7  # likewise after a jump beyond ransac.check_jump_trans or check_jump_rot_deg
+    # from the last tracked pose: a pose carried off along what a small visible part leaves free (0: off)
     # Lost when the frame sees past the model (by graph.free_space_tol) over more than max_seen_past of its
     # silhouette (masking.seen_past) on seen_past_frames frames in a row: the pose is on something else.
     max_seen_past: float = 0.6  # share of the silhouette (1.0: off)

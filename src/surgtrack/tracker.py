@@ -371,7 +371,7 @@ class SurgTracker:
         obs, node, inliers = found
         pose = node.pose
         confidence = self._confidence(node)
-        if confidence < self.cfg.failure.min_confidence:
+        if confidence < self._least_confidence(pose):
             return self._lose(clock, UNSURE, confidence)
         if self._sees_past(obs, pose):
             return self._lose(clock, SEEN_PAST, confidence)
@@ -809,6 +809,19 @@ class SurgTracker:
     def _fit_error(self, dist: np.ndarray) -> float:
         """Mean of `_model_distances` (m), each capped at assoc_dist."""
         return float(np.mean(np.minimum(dist, self.cfg.graph.assoc_dist)))
+
+    def _least_confidence(self, pose: np.ndarray) -> float:
+        """The confidence a pose needs: ``failure.min_confidence``; ``failure.moved_min_confidence`` where tracking
+        (not re-localising) puts it beyond ``ransac.check_jump_trans`` or ``check_jump_rot_deg`` from the last
+        tracked pose. Where little of the instrument shows, the graph can carry the pose off along what that part
+        leaves free, frame after frame; a part coming into view, which the model lacks, comes at the instrument's
+        pace. While the model is the first keyframe's view alone (a first mask of part of the instrument leaves
+        much of the next frames new), the lower bound holds."""
+        f, r = self.cfg.failure, self.cfg.ransac
+        if (self.lost or len(self.pool.keyframes) < 2
+                or within(inv_T(self.recent[-1].pose) @ pose, r.check_jump_trans, r.check_jump_rot_deg)):
+            return f.min_confidence
+        return max(f.min_confidence, f.moved_min_confidence)
 
     def _confidence(self, node: _Node) -> float:
         """Fraction of the frame's points within assoc_dist of the model."""
