@@ -43,8 +43,8 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=30)
     ap.add_argument("--config", type=Path)
     args = ap.parse_args()
+    cfg = TrackerConfig.from_dict(json.loads(args.config.read_text())) if args.config else TrackerConfig()
     for name in args.sequences:
-        cfg = TrackerConfig.from_dict(json.loads(args.config.read_text())) if args.config else TrackerConfig()
         seq = open_sequence(args.data / name)
         tracker = SurgTracker(cfg)
         tracker.register(seq[0], one_end(seq[0].mask, args.share))

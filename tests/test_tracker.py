@@ -134,7 +134,7 @@ def _padded(frame, share: float) -> np.ndarray:
 
 
 def test_a_pose_that_moved_far_with_much_of_the_frame_off_the_model_is_lost_as_unsure(synth_seq):
-    """A frame a third of whose points the model lacks is tracked at the instrument's pace (a part coming into
+    """A frame over a third of whose points the model lacks is tracked at the instrument's pace (a part coming into
     view), but not after a jump beyond ``ransac.check_jump_*``: below ``failure.moved_min_confidence`` that is a
     pose carried off, lost as unsure. The same jump with a clean mask is tracked."""
     seq = open_sequence(synth_seq)
