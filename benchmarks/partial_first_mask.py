@@ -20,7 +20,7 @@ import numpy as np
 
 from surgtrack.config import TrackerConfig
 from surgtrack.io import open_sequence
-from surgtrack.tracker import LOST, SurgTracker
+from surgtrack.tracker import LOST, TRACKED, SurgTracker
 
 
 def one_end(mask: np.ndarray, share: float) -> np.ndarray:
@@ -53,7 +53,7 @@ def main() -> None:
             frame = seq[i]
             result = tracker.track(frame, frame.mask)
             lost += result.status == LOST
-            low = result.status != "tracked" or result.confidence < 0.9
+            low = result.status != TRACKED or result.confidence < 0.9
             marks.append(result.status[0] + (f"{result.confidence:.2f}" if low else ""))
         print(f"{name} share {args.share}: lost {lost} of {len(marks)}: {' '.join(marks)}")
 

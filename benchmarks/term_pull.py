@@ -63,7 +63,7 @@ def main() -> None:
             return solve(node, edges, candidate, obs)
         state["done"] = True
         last, start, base = tracker.recent[-1].pose, node.pose.copy(), tracker.cfg
-        truth = gt.get(seq.ids[a.frame]) if gt else None
+        truth = gt.get(seq.ids[a.frame]) if gt and pts is not None else None  # scored when it can be
         print(f"frame {seq.ids[a.frame]} ({'no mask' if obs is not None and not obs.mask_given else 'its mask'}), "
               f"moves from the last tracked pose:")
         print(f"  {'coarse pose':12s} {move(start, last)}" + (error(start, truth) if truth is not None else ""))

@@ -142,10 +142,8 @@ def test_a_pose_that_moved_far_with_much_of_the_frame_off_the_model_is_lost_as_u
     cfg.sdf.enabled = False
 
     def after_ten() -> SurgTracker:
-        tracker = SurgTracker(cfg)
-        tracker.register(seq[0], seq[0].mask)
-        for i in range(1, 10):
-            assert tracker.track(seq[i], seq[i].mask).status == TRACKED
+        tracker = tracked(seq, cfg, 10)
+        assert not tracker.lost
         return tracker
 
     result = after_ten().track(seq[10], _padded(seq[10], 0.6))
