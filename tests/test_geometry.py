@@ -5,7 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from surgtrack.geometry import make_T, rotation_angle_deg, rotation_gaps_deg, so3_exp, voxel_downsample
+from surgtrack.geometry import (
+    make_T,
+    rotation_angle_deg,
+    rotation_gaps_deg,
+    so3_exp,
+    span,
+    transform,
+    voxel_downsample,
+)
 
 
 def first_per_voxel(p: np.ndarray, voxel: float) -> np.ndarray:
@@ -37,3 +45,12 @@ def test_rotation_gaps_to_many_poses_equal_the_angle_of_each_relative_rotation()
     want = [rotation_angle_deg(T[:3, :3] @ P[:3, :3].T) for P in poses]
     np.testing.assert_allclose(rotation_gaps_deg(T, poses), want, atol=1e-5)
     assert rotation_gaps_deg(T, poses)[0] < 1e-5
+
+
+def test_span_is_a_shafts_length_whatever_a_few_stray_points_say() -> None:
+    shaft = np.stack([np.linspace(-0.1, 0.1, 1000), np.zeros(1000), np.full(1000, 0.3)], axis=1)
+    stray = np.array([[1.0, 1.0, 2.0]] * 10)  # 1 % of the points, a metre off
+    T = make_T(so3_exp(np.array([0.3, -0.2, 1.0])), np.array([0.1, 0.0, 0.2]))
+    for points in (shaft, np.vstack([shaft, stray]), transform(T, shaft)):
+        assert span(points) == pytest.approx(0.2, abs=0.01)
+    assert span(np.empty((0, 3))) == 0.0

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.ndimage import minimum_filter
 
-from surgtrack.geometry import make_T, project
+from surgtrack.geometry import make_T, project, span
 from surgtrack.masking import (
     ColourModel,
     grow_region,
@@ -142,6 +142,25 @@ def test_search_finds_the_nearest_instrument_coloured_regions_of_plausible_size(
     both = search_regions(colours.posterior(rgb2), depth2, K, last, 0.5, 0.6, (40, 6000), n=3)
     assert len(both) == 2 and (both[0] == moved).all() and (both[1] == tray).all()  # nearest first
     assert not search_regions(colours.posterior(rgb2), depth2, K, last, 0.05, 0.6, (40, 6000))  # out of reach
+
+
+def test_search_skips_a_region_far_wider_than_the_instrument_however_few_its_pixels():
+    """A grey wall 3 m away shows in fewer pixels than the bar at 0.3 m but spans half a metre: by pixel count it
+    could be the instrument, by its width (`geometry.span`) it cannot. The bar's top row reads the drape far behind
+    it (edge pixels of a real sensor), which does not make the bar any wider."""
+    rgb, depth, mask = scene()
+    colours = ColourModel()
+    colours.learn(rgb, mask)
+    rgb2, depth2, (moved, wall) = later_frame([(np.s_[10:30, 10:110], 0.32), (np.s_[90:120, 120:160], 3.0)])
+    depth2[10, 10:110] = 2.5  # 5 % of the bar's pixels
+    bar = span(bar_points(mask, depth))
+    assert wall.sum() < moved.sum() and span(bar_points(wall, depth2)) > 3 * bar
+    assert span(bar_points(moved, depth2)) > 3 * bar  # in 3D, the bar's edge row alone sets its span
+    last = np.array([0.0, 0.0, 0.3])
+    posterior = colours.posterior(rgb2)
+    assert len(search_regions(posterior, depth2, K, last, 5.0, 0.6, (40, 6000), n=3)) == 2
+    found = search_regions(posterior, depth2, K, last, 5.0, 0.6, (40, 6000), n=3, max_span=3 * bar)
+    assert len(found) == 1 and (found[0] == moved).all()
 
 
 def test_search_cuts_a_merged_region_where_the_depth_jumps():

@@ -122,6 +122,8 @@ class FailureConfig:
     relocalise_max_reach: float = 0.2  # m, the reach grows with the frames lost up to this (0: no cap)
     relocalise_max_fit: float = 0.005  # m, median distance of a re-localised frame's points to the model
     search_regions: int = 4  # no mask while lost: colour regions nearest the last position tried for re-localisation
+    search_max_span: float = 3.0  # no mask while lost: a colour region wider across the view than this many times
+    # the model (geometry.span) is not the instrument (0: no bound)
     relocalise_min_iou: float = 0.12  # no mask while lost: least IoU of the model's silhouette with its region
     relocalise_min_ncc: float = 0.2  # appearance: least intensity NCC with a keyframe that sees the frame (-1: off)
     appearance_depth_tol: float = 0.005  # m, a frame's point is seen by a keyframe when its depth agrees this well

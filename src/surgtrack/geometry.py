@@ -107,6 +107,14 @@ def off_line(points: np.ndarray, centre: np.ndarray, direction: np.ndarray) -> n
     return np.linalg.norm(q - np.outer(q @ direction, direction), axis=1)
 
 
+def span(points: np.ndarray, share: float = 98.0) -> float:
+    """How wide ``points`` spread (m): twice the ``share`` percentile of their distances from their median, a
+    diameter that a few stray points do not set."""
+    if len(points) == 0:
+        return 0.0
+    return 2.0 * float(np.percentile(np.linalg.norm(points - np.median(points, axis=0), axis=1), share))
+
+
 def backproject(depth: np.ndarray, K: np.ndarray, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Camera-frame points of valid depth pixels (inside mask): returns (N, 3) points and (N, 2) pixel (v, u)."""
     valid = depth > 0

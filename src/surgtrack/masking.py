@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
-from .geometry import backproject, depth_to_xyz, inv_T, off_line, project, transform
+from .geometry import backproject, depth_to_xyz, inv_T, off_line, project, span, transform
 
 SPLAT = 2  # pixels each model point covers around its projection (render_depth)
 
@@ -210,22 +210,25 @@ def _depth_edges(depth: np.ndarray, step: float) -> np.ndarray:
 
 def search_regions(posterior: np.ndarray, depth: np.ndarray, K: np.ndarray, centre: np.ndarray, radius: float,
                    min_posterior: float, pixels: tuple[int, int], n: int = 1,
-                   depth_step: float = 0.01) -> list[np.ndarray]:
+                   depth_step: float = 0.01, max_span: float = np.inf) -> list[np.ndarray]:
     """Where the instrument may be when its pose is lost: the connected regions of pixels whose colour is
     instrument with at least ``min_posterior``, of a plausible pixel count (``pixels``: min, max, counting pixels
-    with valid depth), whose 3D centroid lies within ``radius`` of ``centre`` (camera frame: where the instrument
-    was last seen); the ``n`` nearest to it, nearest first, each as its pixels with valid depth.
+    with valid depth) and width (at most ``max_span``, m: the `geometry.span` of its pixels across the view at their
+    median depth, which a few pixels of the background behind its edge do not set; a wall far behind can show as
+    few pixels as the instrument near), whose 3D centroid lies within ``radius`` of ``centre``
+    (camera frame: where the instrument was last seen); the ``n`` nearest to it, nearest first, each as its pixels
+    with valid depth.
     Connectivity is by colour alone, so depth dropouts along a thin shaft do not break it apart; a region too large
     (the instrument's merged with a hand, drape or tissue of a similar colour) is cut again, 4-connected, where the
     depth is missing or jumps by more than ``depth_step`` (the far side of the jump is cut off, so a diagonal
     contact does not join them), and its pieces compete with the other regions."""
     labels, area = _regions(posterior >= min_posterior, depth, 8)
     xyz = depth_to_xyz(depth, K)
-    near = _near(labels, area, xyz, centre, radius, pixels)
+    near = _near(labels, area, xyz, centre, radius, pixels, max_span)
     too_big = np.flatnonzero(area[1:] > pixels[1]) + 1
     if len(too_big):
         pieces, piece_area = _regions(np.isin(labels, too_big) & ~_depth_edges(depth, depth_step), depth, 4)
-        near += _near(pieces, piece_area, xyz, centre, radius, pixels)
+        near += _near(pieces, piece_area, xyz, centre, radius, pixels, max_span)
     near.sort(key=lambda found: found[0])
     return [region for _, region in near[:n]]
 
@@ -239,15 +242,17 @@ def _regions(candidates: np.ndarray, depth: np.ndarray, connectivity: int) -> tu
 
 
 def _near(labels: np.ndarray, area: np.ndarray, xyz: np.ndarray, centre: np.ndarray, radius: float,
-          pixels: tuple[int, int]) -> list[tuple[float, np.ndarray]]:
+          pixels: tuple[int, int], max_span: float) -> list[tuple[float, np.ndarray]]:
     """`search_regions`' regions of a plausible size within ``radius``, with their centroids' distances."""
     near = []
     for label in np.flatnonzero((area >= pixels[0]) & (area <= pixels[1])):
         if label == 0:
             continue
         region = labels == label
-        distance = float(np.linalg.norm(np.median(xyz[region], axis=0) - centre))
-        if distance <= radius:
+        points = xyz[region]
+        middle = np.median(points, axis=0)
+        distance = float(np.linalg.norm(middle - centre))
+        if distance <= radius and span(points[:, :2] / points[:, 2:] * middle[2]) <= max_span:
             near.append((distance, region))
     return near
 

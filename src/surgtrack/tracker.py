@@ -33,6 +33,7 @@ from .geometry import (
     orthonormalize,
     project,
     rotation_angle_deg,
+    span,
     transform,
     voxel_downsample,
 )
@@ -432,19 +433,21 @@ class SurgTracker:
 
     def _search(self, frame: Frame, colour: ColourModel, clock: _Clock) -> tuple[Observation, _Node, int] | str:
         """Re-localisation without a mask (step 5): against each of the ``failure.search_regions`` colour regions
-        nearest the last position (`masking.search_regions`); the winner is the pose whose model silhouette agrees
-        best with its region (`masking.silhouette_iou`), if by at least ``failure.relocalise_min_iou``. The model's
-        fit alone prefers a fingertip-sized region, which some part of the model always fits. Regions are looked for
-        within the reach without its cap: a region's centroid can lie far from the instrument's origin (a long
-        shaft), and the pose found on it is held to the cap anyway. A region with too few trusted points is tried
-        grown into the instrument's other colours around it (`masking.grow_region`). When lost: `HIDDEN` if no region
-        had enough trusted points, else `NO_POSE`."""
+        nearest the last position (`masking.search_regions`), none wider than ``failure.search_max_span`` times the
+        model (a wall of its colour far behind, on which registration alone took seconds); the winner is the pose
+        whose model silhouette agrees best with its region (`masking.silhouette_iou`), if by at least
+        ``failure.relocalise_min_iou``. The model's fit alone prefers a fingertip-sized region, which some part of
+        the model always fits. Regions are looked for within the reach without its cap: a region's centroid can lie
+        far from the instrument's origin (a long shaft), and the pose found on it is held to the cap anyway. A region
+        with too few trusted points is tried grown into the instrument's other colours around it
+        (`masking.grow_region`). When lost: `HIDDEN` if no region had enough trusted points, else `NO_POSE`."""
         f, pre = self.cfg.failure, self.cfg.preprocess
         seen = max(max(k.area for k in self.pool.keyframes), f.min_pixels)
         posterior = colour.posterior(frame.rgb)
+        wide = f.search_max_span * span(self.model_points) if f.search_max_span > 0 else np.inf
         regions = search_regions(posterior, frame.depth, frame.K, self._last_seen(),
                                  self._reach(frame.index, capped=False), pre.search_mask_colour,
-                                 (f.min_pixels, 3 * seen), f.search_regions)
+                                 (f.min_pixels, 3 * seen), f.search_regions, max_span=wide)
         clock.lap("preprocess")
         best, best_iou, reason = None, f.relocalise_min_iou, HIDDEN
         for region in regions:
