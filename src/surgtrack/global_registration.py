@@ -95,8 +95,9 @@ def overlap(model_tree: cKDTree, pose: np.ndarray, points_cam: np.ndarray, dist:
 def global_register(points_cam: np.ndarray, model_obj: np.ndarray | FpfhCloud, voxel: float = FPFH_VOXEL,
                     seeds: Sequence[int] = (0,), iterations: int = 50_000) -> list[tuple[np.ndarray, float]]:
     """Poses (object-to-camera) that lay the model on the frame's points, one per RANSAC seed, each with the fraction
-    of those points it explains (within 2 voxels); empty when there are too few points. The clouds and their FPFH
-    features are computed once for all seeds; the model's may come computed already (`FpfhCloud`)."""
+    of those points it explains (within 2 voxels); empty when there are too few points. The clouds, their FPFH
+    features and the features' matches are computed once for all seeds; the model's may come computed already
+    (`FpfhCloud`)."""
     given = model_obj if isinstance(model_obj, FpfhCloud) else None
     model_pts = given.source if given is not None else model_obj
     if len(points_cam) < 30 or len(model_pts) < 30:
@@ -109,11 +110,14 @@ def global_register(points_cam: np.ndarray, model_obj: np.ndarray | FpfhCloud, v
         return []
     gate = 2.0 * voxel
     tree, dst_pts = cKDTree(np.asarray(src.points)), np.asarray(dst.points)
+    # The mutual FPFH matches, found once for all seeds: Open3D's feature-matching RANSAC finds them again per call
+    # (most of a call's time on a large cloud), and from the same matches gives the same pose.
+    matches = _REG.correspondences_from_features(src_f, dst_f, True)
     found = []
     for seed in seeds:
         o3d.utility.random.seed(seed)
-        coarse = _REG.registration_ransac_based_on_feature_matching(
-            src, dst, src_f, dst_f, True, gate, _REG.TransformationEstimationPointToPoint(False), 3,
+        coarse = _REG.registration_ransac_based_on_correspondence(
+            src, dst, matches, gate, _REG.TransformationEstimationPointToPoint(False), 3,
             [_REG.CorrespondenceCheckerBasedOnEdgeLength(0.9), _REG.CorrespondenceCheckerBasedOnDistance(gate)],
             _REG.RANSACConvergenceCriteria(iterations, 0.999))
         fine = _REG.registration_icp(src, dst, gate, coarse.transformation, _REG.TransformationEstimationPointToPlane())
