@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 
 import surgtrack.tracker
 from surgtrack.config import TrackerConfig
-from surgtrack.geometry import inv_T, make_T, project, rotation_angle_deg, transform
+from surgtrack.geometry import inv_T, make_T, project, rotation_angle_deg, span, transform
 from surgtrack.global_registration import FpfhCloud
 from surgtrack.io import open_sequence
 from surgtrack.masking import render_depth
@@ -228,12 +228,13 @@ def test_a_long_loss_without_masks_is_searched_on_every_few_frames_only(synth_se
 def test_relocalisation_registers_against_the_model_as_it_is_now(synth_seq):
     """Global registration after a loss uses the model's FPFH features computed once (a loss tries several regions
     a frame against the same model), and computed again once keyframes have added points to the model: never the
-    features of a model the tracker no longer has."""
+    features of a model the tracker no longer has. The same for the model's span, which bounds the search's
+    regions."""
     seq = open_sequence(synth_seq)
     tracker = SurgTracker(TrackerConfig.from_dict({"sdf": {"enabled": False}}))
     tracker.register(seq[0], seq[0].mask)
-    first = tracker._model_features()
-    assert tracker._model_features() is first
+    first, first_span = tracker._model_features(), tracker._span()
+    assert tracker._model_features() is first and first_span == span(tracker.model_points)
     before = tracker.model_points
     for i in range(1, len(seq)):
         tracker.track(seq[i], None)
@@ -243,6 +244,7 @@ def test_relocalisation_registers_against_the_model_as_it_is_now(synth_seq):
     now = tracker._model_features()
     assert now is not first and now.source is tracker.model_points and tracker._model_features() is now
     assert np.array_equal(np.asarray(now.cloud.points), np.asarray(FpfhCloud.of(tracker.model_points).cloud.points))
+    assert tracker._span() == span(tracker.model_points) != first_span
 
 
 def test_without_masks_a_nearer_look_alike_does_not_take_the_relocalisation(synth_seq):

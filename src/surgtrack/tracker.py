@@ -223,6 +223,7 @@ class SurgTracker:
         self._keyframes_added = 0  # by this tracker; sets the refit cadence (sdf.refit_every)
         self.model_points: np.ndarray | None = None  # the keyframes' points in the object frame
         self._model_fpfh: FpfhCloud | None = None  # model_points with their FPFH features, once a loss needs them
+        self._model_span: float | None = None  # geometry.span of model_points, once a search needs it
         self._model_tree: cKDTree | None = None
         # per model point: frames that saw past it, frames that saw it or past it, whether a given mask made it
         self._past, self._views, self._given = np.zeros(0, int), np.zeros(0, int), np.zeros(0, bool)
@@ -444,7 +445,7 @@ class SurgTracker:
         f, pre = self.cfg.failure, self.cfg.preprocess
         seen = max(max(k.area for k in self.pool.keyframes), f.min_pixels)
         posterior = colour.posterior(frame.rgb)
-        wide = f.search_max_span * span(self.model_points) if f.search_max_span > 0 else np.inf
+        wide = f.search_max_span * self._span() if f.search_max_span > 0 else np.inf
         regions = search_regions(posterior, frame.depth, frame.K, self._last_seen(),
                                  self._reach(frame.index, capped=False), pre.search_mask_colour,
                                  (f.min_pixels, 3 * seen), f.search_regions, max_span=wide)
@@ -654,6 +655,13 @@ class SurgTracker:
             self._model_fpfh = FpfhCloud.of(self.model_points)
         return self._model_fpfh
 
+    def _span(self) -> float:
+        """The model's `geometry.span`, found once after each change of the model: a long loss searches every few
+        frames against the same model."""
+        if self._model_span is None:
+            self._model_span = span(self.model_points)
+        return self._model_span
+
     def _relocalisation_due(self) -> bool:
         """Whether to try re-localising this lost frame, which came without a mask (step 5): every frame of the
         first ``relocalise_window`` after the loss, then every ``relocalise_every``-th. The search is the costliest
@@ -859,10 +867,11 @@ class SurgTracker:
         self._given = np.concatenate([self._given, np.full(new, given)])
 
     def _set_model_points(self, points: np.ndarray) -> None:
-        """The model's points, and what is derived from them: a k-d tree now, FPFH features when a loss needs them."""
+        """The model's points, and what is derived from them: a k-d tree now, FPFH features and span when a loss needs
+        them."""
         self.model_points = points
         self._model_tree = cKDTree(points)
-        self._model_fpfh = None
+        self._model_fpfh = self._model_span = None
 
     def _carve(self, frame: Frame, pose: np.ndarray) -> None:
         """Free-space carving of the model, as TSDF fusion clears what has moved away: a point that a tracked frame
