@@ -10,11 +10,10 @@ DATA the rendered sequences of the same names, e.g. ``bench_out/data``. Prints a
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 from result_runs import result_runs
 
+from surgtrack.io import read_track_log
 from surgtrack.metrics import evaluate
 
 BANDS = (0.02, 0.06)  # m, ADD-S band edges
@@ -26,7 +25,7 @@ def main() -> None:
     for out, seq, _, _ in result_runs(__doc__.splitlines()[0], "track.jsonl"):
         adds = evaluate(out, seq)["errors"]["add_s"]
         e = np.array([np.inf if v is None else v for v in adds.values()])
-        status = [json.loads(line) for line in (out / "track.jsonl").read_text().splitlines()]
+        status = read_track_log(out)
         found = [f"{i} ({100 * adds[s['frame']]:.1f})" for i, s in enumerate(status)
                  if s["status"] == "relocalised" and adds.get(s["frame"]) is not None]
         counts = (np.sum(e < BANDS[0]), np.sum((e >= BANDS[0]) & (e < BANDS[1])),

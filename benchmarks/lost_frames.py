@@ -9,13 +9,12 @@ give a pose (the evaluation counts them as misses): the ADD-S / ADD AUC a run ca
 from __future__ import annotations
 
 import argparse
-import json
 from collections import Counter
 from pathlib import Path
 
 import numpy as np
 
-from surgtrack.io import open_sequence, read_mask
+from surgtrack.io import open_sequence, read_mask, read_track_log
 
 
 def main() -> None:
@@ -36,7 +35,7 @@ def main() -> None:
         for i, f in enumerate(seq.ids):
             path = seq.mask_path(i)
             area[f] = int(np.count_nonzero(read_mask(path))) if path.exists() else 0
-        lost = [r for r in map(json.loads, (out / "track.jsonl").read_text().splitlines()) if r["status"] == "lost"]
+        lost = [r for r in read_track_log(out) if r["status"] == "lost"]
         why = Counter(r.get("reason", "?") for r in lost)
         shown = sum(area[r["frame"]] >= a.min_pixels for r in lost)
         unseen = sum(n < a.unseen for n in area.values())

@@ -9,15 +9,15 @@ DATA the rendered sequences of the same names, e.g. ``bench_out/data``.
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 from result_runs import result_runs
+
+from surgtrack.io import read_track_log
 
 
 def main() -> None:
     for out, _, gt, est in result_runs(__doc__.splitlines()[0], "track.jsonl"):
-        status = [json.loads(line) for line in (out / "track.jsonl").read_text().splitlines()]
+        status = read_track_log(out)
         ids = [s["frame"] for s in status]
         origin = np.linalg.inv(gt[ids[0]]) @ np.r_[est[ids[0]][:3, 3], 1]  # the tracker's origin, object frame
         last = None

@@ -8,8 +8,9 @@ count the tracker's own work, so they compare runs of one machine; two runs side
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
+
+from surgtrack.io import read_track_log
 
 
 def main() -> None:
@@ -21,8 +22,7 @@ def main() -> None:
     for root in a.roots:
         frames, longest, where, stages = [], 0.0, "-", {}
         for log in sorted(root.glob("*/track.jsonl")):
-            for line in log.read_text().splitlines():
-                row = json.loads(line)
+            for row in read_track_log(log.parent):
                 ms = sum(row["ms"].values())
                 frames.append(ms)
                 if ms > longest:

@@ -24,6 +24,7 @@ from surgtrack.io import (
     SequenceWriter,
     open_sequence,
     read_poses,
+    read_track_log,
     sequence_digest,
     write_pose,
 )
@@ -308,6 +309,22 @@ def test_result_writer_survives_an_exception(tmp_path: Path):
     assert sorted(read_poses(out / "ob_in_cam")) == ["000000", "000001", "000002"]
     np.testing.assert_allclose(read_poses(out / "ob_in_cam")["000002"], pose(2), atol=1e-8)
     assert len((out / "track.jsonl").read_text().splitlines()) == 3
+
+
+def test_the_track_log_reads_back_as_written_and_a_broken_one_names_its_line(tmp_path: Path):
+    out = tmp_path / "out"
+    with ResultWriter(out) as w:
+        w.write("000000", pose(0), {"status": "tracked", "ms": {"graph": 12.5}})
+        w.write("000001", None, {"status": "lost", "reason": "hidden"})
+    rows = read_track_log(out)
+    assert rows == [{"frame": "000000", "status": "tracked", "ms": {"graph": 12.5}},
+                    {"frame": "000001", "status": "lost", "reason": "hidden"}]
+    with open(out / "track.jsonl", "a") as log:
+        log.write('{"frame": "000002", "sta')  # a run killed mid-line
+    with pytest.raises(SequenceError, match=r"track\.jsonl.*line 3 is not JSON"):
+        read_track_log(out)
+    with pytest.raises(SequenceError, match="missing file"):
+        read_track_log(tmp_path / "nowhere")
 
 
 def test_pose_writes_are_atomic(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):

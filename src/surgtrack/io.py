@@ -488,6 +488,20 @@ def read_poses(folder: Path | str) -> dict[str, np.ndarray]:
     return {p.stem: read_matrix(p, (4, 4)) for p in sorted(folder.glob("*.txt"))}
 
 
+def read_track_log(out: Path | str) -> list[dict]:
+    """OUT/track.jsonl as `ResultWriter` writes it: one dict a frame, in order (frame, status, confidence, ms...)."""
+    path = Path(out) / "track.jsonl"
+    if not path.is_file():
+        raise SequenceError(path, "missing file")
+    rows = []
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError:
+            raise SequenceError(path, f"line {n} is not JSON") from None
+    return rows
+
+
 class ResultWriter:
     """Writes OUT/config.json (the run's ``config``, when given) at the start, OUT/ob_in_cam/NNNNNN.txt as each
     frame is tracked, OUT/track.jsonl and OUT/mesh.ply."""
