@@ -21,7 +21,9 @@ from surgtrack.cli import app
 from surgtrack.config import TrackerConfig
 from surgtrack.igtl import PoseStreamer, pose_to_igtl
 from surgtrack.io import Frame, Sequence, open_sequence, read_poses
+from surgtrack.overlay import draw_overlay
 from surgtrack.pipeline import track_sequence
+from surgtrack.posture_graph import Unmeasured
 from surgtrack.realsense import RealSenseError, RealSenseSource, box_mask, parse_box, record_sequence
 from surgtrack.tracker import HIDDEN, LOST, RELOCALISED, TrackResult
 
@@ -398,3 +400,21 @@ def test_track_writes_an_overlay_video(synth_seq: Path, fast_config: Path, tmp_p
     assert run.exit_code == 0, run.output
     assert count_video_frames(video) == (len(open_sequence(synth_seq)), 320, 240)
     assert len(read_poses(tmp_path / "out" / "ob_in_cam")) >= 1
+
+
+def test_the_overlay_names_what_a_posed_frame_left_unmeasured():
+    """The label of a frame whose turn its data left free reads "tracked, turn unmeasured": the text runs on beyond
+    "tracked" in the label's band and nowhere else; a lost frame's label stays as it was."""
+    rgb = np.zeros((240, 320, 3), np.uint8)
+    K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
+    pose = np.eye(4)
+    pose[2, 3] = 0.3
+    points = np.random.default_rng(0).uniform(-0.01, 0.01, (200, 3))
+    turn = [Unmeasured("turn", np.array([1.0, 0.0, 0.0]))]
+    plain = draw_overlay(rgb, pose, K, points, "tracked")
+    named = draw_overlay(rgb, pose, K, points, "tracked", unmeasured=turn)
+    rows, cols = np.nonzero((plain != named).any(-1))
+    assert len(rows) > 0 and rows.max() < 40
+    assert cols.min() > np.nonzero(plain[:40].any(-1))[1].max() - 10  # after "tracked", not over it
+    lost = draw_overlay(rgb, None, K, points, "lost", reason="hidden")
+    assert np.array_equal(lost, draw_overlay(rgb, None, K, points, "lost", reason="hidden", unmeasured=turn))

@@ -294,6 +294,35 @@ def test_motion_prior_alone_gives_the_prior():
     assert np.allclose(optimize_graph([empty], [], GraphConfig(w_m=0.0), priors=[(0, T1)])[0], T0)
 
 
+def test_the_directions_the_data_leave_free_are_reported_unmeasured():
+    """A sphere's rotation is free (three turns, its centre measured); a box seen at a corner leaves nothing free."""
+    radius = 0.05
+    T_gt = make_T(np.eye(3), np.array([0.01, -0.005, 0.3]))
+    xyz, nrm = render_sphere(T_gt, radius)
+    node = GraphNode(pose=T_gt, xyz=xyz, normals=nrm, K=K.copy())
+
+    def sphere_sdf(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        r = np.linalg.norm(p, axis=1)
+        return r - radius, p / r[:, None]
+
+    free: dict = {}
+    optimize_graph([node], [], GraphConfig(), sdf=sphere_sdf, sdf_nodes=[0], priors=[(0, T_gt)], unmeasured=free)
+    assert [u.kind for u in free[0]] == ["turn"] * 3
+    axes = np.stack([u.axis for u in free[0]])
+    assert np.allclose(axes @ axes.T, np.eye(3), atol=1e-6)  # every axis of rotation
+
+    rng = np.random.default_rng(3)
+    _, nodes = make_graph(rng, 3)
+    free = {}
+    optimize_graph(nodes, [], GraphConfig(), priors=[(1, nodes[1].pose)], unmeasured=free)
+    assert free == {1: []}
+    # The report does not depend on the prior's weight; without the argument nothing is reported or changed.
+    free_w0: dict = {}
+    out = optimize_graph(nodes, [], GraphConfig(w_m=0.0), priors=[(1, nodes[1].pose)], unmeasured=free_w0)
+    assert free_w0 == {1: []}
+    assert all(np.allclose(a, b) for a, b in zip(out, optimize_graph(nodes, [], GraphConfig(w_m=0.0)), strict=True))
+
+
 def face_on_free_space(occluded: bool) -> tuple[np.ndarray, list[GraphNode], FreeSpace]:
     """The box seen face-on (only its -z face shows: L_2D leaves a slide within that face free), a node slid 1 cm
     along the box's long side against a fixed node at the truth, and the frame's free space at 640x480: the face's

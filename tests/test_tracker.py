@@ -173,6 +173,24 @@ def test_tracks_a_synthetic_sequence_within_stated_error(synth_seq, tmp_path):
     assert m["add_auc"] >= 70, m["add_auc"]
 
 
+def test_each_posed_frame_says_what_its_data_left_unmeasured_the_turn_about_a_round_shaft(synth_seq, tmp_path):
+    """track.jsonl's ``unmeasured`` on a rigid endoscope's round shaft: turns only, about the shaft's own axis
+    (object frame: the camera's axes at the first frame), on some frames; lost frames carry no such list."""
+    from surgtrack.synth.instruments import load_instrument
+
+    seq = open_sequence(synth_seq)
+    cfg = TrackerConfig()
+    cfg.sdf.enabled = False
+    track_sequence(seq, tmp_path / "out", cfg)
+    lines = [json.loads(x) for x in (tmp_path / "out" / "track.jsonl").read_text().splitlines()]
+    assert all(("unmeasured" in x) == (x["status"] != LOST) for x in lines)
+    shaft = seq.gt_poses()[seq.ids[0]][:3, :3] @ load_instrument("rigid_endoscope").axis
+    free = [u for x in lines for u in x.get("unmeasured", [])]
+    assert len(free) >= 3
+    assert all(list(u) == ["turn"] for u in free)
+    assert all(abs(np.dot(u["turn"], shaft)) > np.cos(np.radians(3.0)) for u in free)
+
+
 def test_a_broken_frame_stops_the_run_with_its_name_and_keeps_the_poses_before(synth_seq, tmp_path):
     """The frames are read ahead while earlier ones are tracked (`Sequence.read_ahead`): an unreadable frame still
     stops the run at that frame, with an error naming its file, and the poses of the frames before it stay written."""

@@ -94,6 +94,7 @@ class GraphConfig:
     w_m: float = 1.0  # prior at the coarse pose where the data leave it free, in point residuals (not in the paper)
     prior_lever: float = 0.02  # m: the prior weighs a rotation as the displacement of a point this far away
     prior_null: float = 0.05  # the prior acts along directions whose data information is below this of the largest
+    unmeasured_ratio: float = 1e-3  # below this of the largest, a direction is reported unmeasured (track.jsonl)
     w_fs: float = 1.0  # weight of L_FS, model points the frame saw past pulled into its mask (not in the paper; 0: off)
     free_space_tol: float = 0.01  # m: the frame's depth lies this far behind a model point: it saw past the point
     free_space_margin: float = 2.0  # pixels off the mask before L_FS acts (mask edges, mixed depth)

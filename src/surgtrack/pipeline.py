@@ -78,9 +78,12 @@ class RunSummary:
 
 def frame_record(result: TrackResult) -> dict:
     """A frame's line of OUT/track.jsonl beside its frame id: status (and why, when lost), confidence, whether L_SDF
-    (eq. 11) was in its graph, and ms per stage."""
+    (eq. 11) was in its graph, for a posed frame the directions its data left free (``"unmeasured"``: a list of
+    ``{"turn": axis}`` or ``{"slide": axis}``, unit vectors in the object frame), and ms per stage."""
     why = {"reason": result.reason} if result.status == LOST else {}
-    return {"status": result.status, **why, "confidence": round(result.confidence, 4), "sdf": result.sdf,
+    free = {} if result.status == LOST else {
+        "unmeasured": [{u.kind: [round(float(a), 3) for a in u.axis]} for u in result.unmeasured]}
+    return {"status": result.status, **why, "confidence": round(result.confidence, 4), "sdf": result.sdf, **free,
             "ms": {k: round(v * 1e3, 2) for k, v in result.timings.items()}}
 
 

@@ -415,14 +415,38 @@ def _hat_rows(y: np.ndarray, sign: float) -> np.ndarray:
     return np.stack([np.stack([z, -y2, y1], 1), np.stack([y2, z, -y0], 1), np.stack([-y1, y0, z], 1)], 1)
 
 
-def _null_space_prior(H: np.ndarray, cfg: GraphConfig) -> np.ndarray:
+def _null_space_prior(H: np.ndarray, cfg: GraphConfig) -> tuple[np.ndarray, np.ndarray]:
     """Information matrix of the motion prior: weight ``cfg.w_m`` along the directions the data's 6x6 block ``H``
-    leaves (nearly) free, eigenvalue below ``cfg.prior_null`` of the largest, and nothing along the others.
-    Rotations are compared with translations as the displacement of a point ``cfg.prior_lever`` away."""
+    leaves (nearly) free, eigenvalue below ``cfg.prior_null`` of the largest, and nothing along the others; and the
+    directions below ``cfg.unmeasured_ratio`` of the largest, unit columns (6, k) of D delta (`Unmeasured`).
+    Rotations are compared with translations as the displacement of a point ``cfg.prior_lever`` away (D)."""
     D = np.array([1.0, 1.0, 1.0] + [cfg.prior_lever] * 3)
     lam, V = np.linalg.eigh(H / np.outer(D, D))
-    weak = V[:, lam <= cfg.prior_null * max(float(lam[-1]), 1e-12)]
-    return cfg.w_m * (weak @ weak.T) * np.outer(D, D)
+    rel = lam / max(float(lam[-1]), 1e-12)
+    weak = V[:, rel <= cfg.prior_null]
+    return cfg.w_m * (weak @ weak.T) * np.outer(D, D), V[:, rel <= cfg.unmeasured_ratio]
+
+
+@dataclass(frozen=True)
+class Unmeasured:
+    """A direction of a node's pose that the frame's data left free (information below ``graph.unmeasured_ratio``
+    of the best-measured direction's), held by the motion prior: a ``kind`` "turn" about ``axis`` or "slide" along
+    it (unit vector, object frame). The turn about a round shaft
+    (a rotation about the shaft's direction, with the translation that keeps its axis line in place) is a turn; a
+    direction whose rotation moves a point ``prior_lever`` away by under a tenth of its length is a slide."""
+
+    kind: str
+    axis: np.ndarray
+
+    @classmethod
+    def of(cls, free: np.ndarray) -> list[Unmeasured]:
+        """The directions of `_null_space_prior`'s columns ``free``."""
+        out = []
+        for v in free.T:
+            turn = np.linalg.norm(v[3:]) >= 0.1
+            part = v[3:] if turn else v[:3]
+            out.append(cls("turn" if turn else "slide", part / np.linalg.norm(part)))
+        return out
 
 
 def default_pairs(n: int, edges: Sequence[FeatureEdge]) -> list[tuple[int, int]]:
@@ -446,6 +470,7 @@ def optimize_graph(
     priors: Sequence[tuple[int, np.ndarray]] = (),
     free_space: tuple[int, FreeSpace] | None = None,
     coverage: tuple[int, Coverage] | None = None,
+    unmeasured: dict[int, list[Unmeasured]] | None = None,
 ) -> list[np.ndarray]:
     """Optimised 4x4 object-to-camera poses of ``nodes`` minimising the energy of eq. 8; fixed nodes are returned
     unchanged.
@@ -461,7 +486,8 @@ def optimize_graph(
     - Motion prior (not in the paper): for each ``(t, pose)`` in ``priors``, the residual log(C_t pose) (translation,
       and rotation times ``cfg.prior_lever``) with weight ``cfg.w_m``, worth that many point residuals, along the
       directions the data leave free only (`_null_space_prior`): a roll about a round shaft or a slide along it
-      stays at ``pose`` instead of wandering, and the data alone decide every other direction.
+      stays at ``pose`` instead of wandering, and the data alone decide every other direction. With ``unmeasured``
+      given, ``unmeasured[t]`` is set to those directions at the last step (`Unmeasured`, also when w_m is 0).
     - Free space (not in the paper): with ``free_space`` = (t, fs), `FreeSpace.residuals` at node t, weight
       ``cfg.w_fs``: the model may not stand where the frame saw the background (a slide along a shaft moves its end
       out of the mask).
@@ -542,9 +568,11 @@ def optimize_graph(
             ne.add(np.array([t]), J[None], r[None], (w * huber_weight(r, hd))[None])
 
         for t, prior in priors:
-            if free[t] and cfg.w_m > 0:
+            if free[t] and (cfg.w_m > 0 or unmeasured is not None):
                 E = C[t] @ prior  # C_t times the prior's pose: identity at the prior
-                W = _null_space_prior(ne.H[t, t], cfg)
+                W, free_dirs = _null_space_prior(ne.H[t, t], cfg)
+                if unmeasured is not None:
+                    unmeasured[t] = Unmeasured.of(free_dirs)
                 ne.H[t, t] += W
                 ne.g[t] += W @ np.concatenate([E[:3, 3], so3_log(E[:3, :3])])
 

@@ -51,7 +51,7 @@ from .masking import (
 )
 from .memory_pool import Keyframe, MemoryPool
 from .model import InstrumentModel
-from .posture_graph import Coverage, FeatureEdge, FreeSpace, GraphNode, GridPoints, optimize_graph
+from .posture_graph import Coverage, FeatureEdge, FreeSpace, GraphNode, GridPoints, Unmeasured, optimize_graph
 from .preprocess import MaskEdge, Observation, preprocess, remasked
 from .ransac import plausible, ransac_pose, within
 from .registration import BackgroundFitter, InstrumentSDF
@@ -76,8 +76,10 @@ def unseen(mask: np.ndarray, min_pixels: int) -> str:
 @dataclass
 class TrackResult:
     """What track() returns: pose (None when lost), status, confidence in [0, 1], per-stage seconds, the feature
-    inliers, whether the Instrument SDF's term L_SDF (eq. 11) was in the posture graph that gave the pose, and for a
-    lost frame why (`HIDDEN`, `NO_DEPTH`, `NO_POSE`, `UNSURE`, `SEEN_PAST` or `NOT_TRIED`; "" otherwise)."""
+    inliers, whether the Instrument SDF's term L_SDF (eq. 11) was in the posture graph that gave the pose, for a
+    lost frame why (`HIDDEN`, `NO_DEPTH`, `NO_POSE`, `UNSURE`, `SEEN_PAST` or `NOT_TRIED`; "" otherwise), and the
+    directions of the pose that graph's data left free, held by the motion prior (`posture_graph.Unmeasured`: the
+    turn about a round shaft, the slide along a bare one)."""
 
     pose: np.ndarray | None
     status: str
@@ -86,6 +88,7 @@ class TrackResult:
     inliers: int = 0
     sdf: bool = False
     reason: str = ""
+    unmeasured: tuple[Unmeasured, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -111,6 +114,7 @@ class _Node:
     K_grid: np.ndarray
     distances: tuple[bytes, cKDTree | None, np.ndarray] | None = field(default=None, repr=False)  # of its pose
     sdf: bool = False  # L_SDF (eq. 11) was in the graph that gave its pose
+    unmeasured: list[Unmeasured] = field(default_factory=list)  # what that graph's data left free
 
     @cached_property
     def grid_points(self) -> GridPoints:
@@ -388,7 +392,8 @@ class SurgTracker:
         if self.cfg.pool.enabled and self.pool.should_add(pose, predicted_area):
             self._add_keyframe(node, obs)
         clock.lap("pool")
-        return TrackResult(pose, status, confidence, clock.laps, inliers, node.sdf)
+        return TrackResult(pose, status, confidence, clock.laps, inliers, node.sdf,
+                           unmeasured=tuple(node.unmeasured))
 
     # -------------------------------------------------------------------------------------------------- stages
 
@@ -710,7 +715,7 @@ class SurgTracker:
         Gauss-Newton steps, one on a predicted mask ``graph.iterations``: its mask is found again at the pose they
         reach (`_remasked`), which fewer steps leave short. Sets
         ``node.sdf`` to whether L_SDF was in the graph (a field that agrees with the frame, `_field_agrees`, and
-        ``graph.w_s`` > 0)."""
+        ``graph.w_s`` > 0), and ``node.unmeasured`` to the directions its data left free (`Unmeasured`)."""
         others: list[_Node | Keyframe] = [e[0] for e in edges]
         prior = node.pose.copy()
         for prev in reversed(self.recent):
@@ -737,10 +742,11 @@ class SurgTracker:
         free_space = None
         if obs is not None and cfg.w_fs > 0 and self.model_points is not None:
             free_space = self._free_space(node, obs, cfg)
+        unmeasured: dict[int, list[Unmeasured]] = {}
         poses = optimize_graph(nodes, graph_edges, cfg, self.sdf if use_sdf else None,
                                [0] if use_sdf else [], pairs_2d=pairs, priors=[(0, prior)], free_space=free_space,
-                               coverage=None if candidate else self._coverage(node, obs, cfg))
-        node.sdf = use_sdf
+                               coverage=None if candidate else self._coverage(node, obs, cfg), unmeasured=unmeasured)
+        node.sdf, node.unmeasured = use_sdf, unmeasured.get(0, [])
         return poses[0]
 
     def _free_space(self, node: _Node, obs: Observation, cfg: GraphConfig) -> tuple[int, FreeSpace] | None:
