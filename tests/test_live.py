@@ -273,11 +273,15 @@ def test_streams_tracked_poses_in_millimetres_and_lost_status_with_its_reason(li
             wait_connected(streamer)
             for rec in records:
                 pose = poses.get(rec["frame"])
-                assert streamer.send(TrackResult(pose, rec["status"], 1.0, reason=rec.get("reason", "")))
+                free = tuple(Unmeasured(k, np.array(v)) for u in rec.get("unmeasured", []) for k, v in u.items())
+                assert streamer.send(TrackResult(pose, rec["status"], 1.0, reason=rec.get("reason", ""),
+                                                 unmeasured=free))
                 status = client.wait_for_message("TrackingStatus", timeout=5)
                 assert status is not None and status.string == rec["status"]
                 reason = client.wait_for_message("Why", timeout=5)
                 assert reason is not None and reason.string == rec.get("reason", "")
+                said = client.wait_for_message("TrackingUnmeasured", timeout=5)
+                assert said is not None and said.string == " ".join(sorted({u.kind for u in free}))
                 if pose is None:
                     assert client.wait_for_message("Endoscope", timeout=0.3) is None
                     continue
@@ -288,6 +292,7 @@ def test_streams_tracked_poses_in_millimetres_and_lost_status_with_its_reason(li
         finally:
             client.stop()
     assert streamer.sent == len(records)
+    assert any(rec.get("unmeasured") for rec in records)  # the recording's shaft leaves its turn free on some frames
 
 
 def test_streamer_sends_nothing_without_a_client_and_checks_names():
@@ -297,6 +302,8 @@ def test_streamer_sends_nothing_without_a_client_and_checks_names():
         PoseStreamer(port=0, device_name="InstrumentToCameraFrame")
     with pytest.raises(ValueError, match="differ"):
         PoseStreamer(port=0, status_device="Tool", reason_device="Tool")
+    with pytest.raises(ValueError, match="differ"):
+        PoseStreamer(port=0, unmeasured_device="TrackingStatus")
     T = np.eye(4)
     T[:3, 3] = [0.01, -0.02, 0.3]
     np.testing.assert_allclose(pose_to_igtl(T)[:3, 3], [10.0, -20.0, 300.0])

@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from .igtl import DEFAULT_DEVICE, DEFAULT_REASON_DEVICE, DEFAULT_STATUS_DEVICE
+from .igtl import DEFAULT_DEVICE, DEFAULT_REASON_DEVICE, DEFAULT_STATUS_DEVICE, DEFAULT_UNMEASURED_DEVICE
 from .io import SequenceError
 
 app = typer.Typer(help="CAD-free 6-DoF tracking and reconstruction of surgical instruments from RGB-D video.",
@@ -330,6 +330,9 @@ def live(
     reason_device: Annotated[str, typer.Option(help="OpenIGTLink device name of the STRING messages saying why a "
                                                     "frame is lost (empty when tracked)")]
     = DEFAULT_REASON_DEVICE,
+    unmeasured_device: Annotated[str, typer.Option(help="OpenIGTLink device name of the STRING messages saying what "
+                                                        "the frame's data left free (turn, slide; empty: nothing)")]
+    = DEFAULT_UNMEASURED_DEVICE,
     out: Annotated[Path | None, typer.Option("--out", "-o", help="also write ob_in_cam/ and track.jsonl here")]
     = None,
     video: Annotated[Path | None, typer.Option(help="write an overlay video")] = None,
@@ -379,11 +382,11 @@ def live(
 
             try:
                 streamer = PoseStreamer(igtl_port, device_name, status_device, interface=igtl_interface,
-                                        reason_device=reason_device)
+                                        reason_device=reason_device, unmeasured_device=unmeasured_device)
             except (OSError, ValueError) as e:
                 fail(f"OpenIGTLink server on port {igtl_port}: {e}")
-            typer.echo(f"streaming {device_name} (mm), {status_device} and {reason_device} over OpenIGTLink on port "
-                       f"{streamer.port}")
+            typer.echo(f"streaming {device_name} (mm), {status_device}, {reason_device} and {unmeasured_device} over "
+                       f"OpenIGTLink on port {streamer.port}")
         if out is not None:
             writer = ResultWriter(out, cfg.to_dict())
         tracker = SurgTracker(cfg, model=instrument_model)

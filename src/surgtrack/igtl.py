@@ -1,7 +1,9 @@
 """Stream tracked poses to a navigation system over OpenIGTLink (3D Slicer's OpenIGTLinkIF, the PLUS toolkit).
 
 Every frame sends a STRING message on the status device (``tracked``, ``relocalised`` or ``lost``) and one on the
-reason device (why a lost frame is lost: ``hidden``, ``no depth``, ... as in track.jsonl; empty when it has a pose);
+reason device (why a lost frame is lost: ``hidden``, ``no depth``, ... as in track.jsonl; empty when it has a pose)
+and one on the unmeasured device (what the frame's data left free, as in track.jsonl's ``unmeasured``: ``turn``,
+``slide`` or ``slide turn``; empty when nothing, or lost);
 a frame with a pose also sends a TRANSFORM message on the pose device: the object-to-camera pose with its
 translation in millimetres, the unit Slicer and PLUS use. A lost frame sends no transform, so a receiver keeps the
 last valid one and reads the status to know it is stale. The reason has a device of its own so that a receiver
@@ -25,6 +27,7 @@ if TYPE_CHECKING:  # the CLI reads the default device names without loading the 
 DEFAULT_DEVICE = "InstrumentToCamera"
 DEFAULT_STATUS_DEVICE = "TrackingStatus"
 DEFAULT_REASON_DEVICE = "TrackingLostReason"
+DEFAULT_UNMEASURED_DEVICE = "TrackingUnmeasured"
 IGTL_DEVICE_NAME_BYTES = 20  # the header's device-name field
 
 
@@ -54,16 +57,14 @@ class PoseStreamer:
 
     def __init__(self, port: int = 18944, device_name: str = DEFAULT_DEVICE,
                  status_device: str = DEFAULT_STATUS_DEVICE, interface: str | None = None,
-                 reason_device: str = DEFAULT_REASON_DEVICE):
+                 reason_device: str = DEFAULT_REASON_DEVICE, unmeasured_device: str = DEFAULT_UNMEASURED_DEVICE):
         import pyigtl
 
         self._pyigtl = pyigtl
-        self.device_name = _check_name(device_name)
-        self.status_device = _check_name(status_device)
-        self.reason_device = _check_name(reason_device)
-        if len({self.device_name, self.status_device, self.reason_device}) < 3:
-            raise ValueError(f"OpenIGTLink device names {device_name!r}, {status_device!r} and {reason_device!r} "
-                             "must differ")
+        names = [device_name, status_device, reason_device, unmeasured_device]
+        self.device_name, self.status_device, self.reason_device, self.unmeasured_device = map(_check_name, names)
+        if len(set(names)) < len(names):
+            raise ValueError(f"OpenIGTLink device names {', '.join(map(repr, names))} must differ")
         main_thread = threading.current_thread() is threading.main_thread()
         signals = (signal.SIGINT, signal.SIGTERM)
         saved = {s: signal.getsignal(s) for s in signals} if main_thread else {}
@@ -79,8 +80,8 @@ class PoseStreamer:
         return bool(self._server.is_connected())
 
     def send(self, result: TrackResult, timestamp: float | None = None) -> bool:
-        """Send one frame's status and lost reason (and transform when it has a pose); False when no client is
-        connected."""
+        """Send one frame's status, lost reason and unmeasured directions (and transform when it has a pose);
+        False when no client is connected."""
         if not self.connected:
             return False
         igtl = self._pyigtl
@@ -92,6 +93,9 @@ class PoseStreamer:
                                                      device_name=self.status_device), wait=False)
         self._server.send_message(igtl.StringMessage(result.reason, timestamp=timestamp,
                                                      device_name=self.reason_device), wait=False)
+        free = " ".join(sorted({u.kind for u in result.unmeasured}))
+        self._server.send_message(igtl.StringMessage(free, timestamp=timestamp,
+                                                     device_name=self.unmeasured_device), wait=False)
         self.sent += 1
         return True
 
