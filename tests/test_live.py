@@ -325,6 +325,9 @@ def test_live_tracks_a_recording_and_streams(live_run: dict, recording: Path, sy
     summary = json.loads((out / "summary.json").read_text())
     assert (summary["frames"], summary["lost"], summary["relocalised"]) == counts
     assert summary["sdf_frames"] == sum(r["sdf"] for r in records)
+    turns = sum(any("turn" in u for u in r.get("unmeasured", [])) for r in records)
+    assert summary["unmeasured"].get("turn", 0) == turns
+    assert (f"turn unmeasured on {turns}," in run.stdout) == (turns > 0)
     last_line = run.stdout.strip().splitlines()[-1]  # the lost frames' reasons in brackets, when any was lost
     assert re.match(r"{} frames, {} lost( \([^)]+\))?, {} relocalised".format(*counts), last_line), last_line
     poses = read_poses(out / "ob_in_cam")

@@ -18,6 +18,7 @@ from surgtrack.geometry import backproject, depth_to_xyz, make_T, transform
 from surgtrack.io import SequenceError, format_pose, open_sequence, read_poses
 from surgtrack.metrics import evaluate
 from surgtrack.pipeline import RunSummary, track_sequence
+from surgtrack.posture_graph import Unmeasured
 from surgtrack.tracker import (
     HIDDEN,
     LOST,
@@ -307,15 +308,18 @@ def test_the_run_summary_counts_frames_and_averages_the_tracked_frames_stage_tim
     summary.add(0, TrackResult(np.eye(4), TRACKED, 1.0))
     summary.add(1, TrackResult(np.eye(4), TRACKED, 0.9, {"graph": 0.010}, sdf=True))
     summary.add(2, TrackResult(None, LOST, 0.0, {"graph": 0.030}, reason=HIDDEN))
-    summary.add(3, TrackResult(np.eye(4), RELOCALISED, 0.8, {"graph": 0.020, "ransac": 0.006}, sdf=True))
+    turns = (Unmeasured("turn", np.array([1.0, 0, 0])), Unmeasured("turn", np.array([0, 1.0, 0])))
+    summary.add(3, TrackResult(np.eye(4), RELOCALISED, 0.8, {"graph": 0.020, "ransac": 0.006}, sdf=True,
+                               unmeasured=turns))
     assert (summary.frames, summary.lost, summary.relocalised) == (4, 1, 1)
     assert (summary.sdf_frames, summary.sdf_from) == (2, 1)
     assert summary.stage_ms == pytest.approx({"graph": 20.0, "ransac": 2.0})
     summary.seconds = 2.0
-    assert summary.line() == ("4 frames, 1 lost (1 hidden), 1 relocalised, L_SDF from frame 1 on 2, 2.0 frames/s "
-                              "(graph 20.0, ransac 2.0 ms)")
+    assert summary.line() == ("4 frames, 1 lost (1 hidden), 1 relocalised, turn unmeasured on 1, L_SDF from frame 1 "
+                              "on 2, 2.0 frames/s (graph 20.0, ransac 2.0 ms)")
     assert summary.to_dict()["stage_ms"] == {"graph": 20.0, "ransac": 2.0}
     assert summary.to_dict()["lost_because"] == {HIDDEN: 1}
+    assert summary.to_dict()["unmeasured"] == {"turn": 1}  # frames, not directions
 
 
 def test_the_end_of_run_mesh_is_the_final_field_kept_to_what_was_seen(synth_seq):

@@ -114,6 +114,7 @@ def _run_method(method: str, names: list[str], root: Path, first_mask_only: bool
         per_seq[name] = {"add_s_auc": m["add_s_auc"], "add_auc": m["add_auc"], "cd_cm": m["cd_cm"],
                          "add_s_auc_full": m["add_s_auc_full"], "add_auc_full": m["add_auc_full"],
                          "lost": summary.lost, "lost_because": summary.lost_because, "wrong": m["wrong"],
+                         "unmeasured": dict(summary.unmeasured),
                          "frames": summary.frames, "fps": summary.fps,
                          "sdf_frames": summary.sdf_frames, "sdf_from": summary.sdf_from,
                          "stage_ms": summary.stage_ms, "seconds": time.perf_counter() - t0}

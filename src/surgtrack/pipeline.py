@@ -17,7 +17,8 @@ from .tracker import LOST, RELOCALISED, TRACKED, SurgTracker, TrackResult
 
 @dataclass
 class RunSummary:
-    """Counts and speed of one run; ``lost_because`` counts the lost frames by `TrackResult.reason`; ``stage_ms`` is
+    """Counts and speed of one run; ``lost_because`` counts the lost frames by `TrackResult.reason`; ``unmeasured``
+    the posed frames that left a turn or a slide unmeasured (`TrackResult.unmeasured`), by kind; ``stage_ms`` is
     the mean time per frame of each tracking stage; ``sdf_frames`` the frames whose pose had L_SDF (eq. 11) in its
     graph, ``sdf_from`` the first of them (None: none had)."""
 
@@ -25,6 +26,7 @@ class RunSummary:
     lost: int = 0
     lost_because: Counter[str] = field(default_factory=Counter)
     relocalised: int = 0
+    unmeasured: Counter[str] = field(default_factory=Counter)
     sdf_frames: int = 0
     sdf_from: int | None = None
     seconds: float = 0.0
@@ -49,6 +51,7 @@ class RunSummary:
             self.lost += 1
             self.lost_because[result.reason] += 1
         self.relocalised += result.status == RELOCALISED
+        self.unmeasured.update({u.kind for u in result.unmeasured})
         self.sdf_frames += result.sdf
         if result.sdf and self.sdf_from is None:
             self.sdf_from = index
@@ -56,12 +59,14 @@ class RunSummary:
             self.stage_s[k] = self.stage_s.get(k, 0.0) + v
 
     def line(self) -> str:
-        """The run in one line: frames, lost (and why), re-localised, L_SDF, frames/s and ms per stage."""
+        """The run in one line: frames, lost (and why), re-localised, frames with a turn or slide unmeasured, L_SDF,
+        frames/s and ms per stage."""
         sdf = f"L_SDF from frame {self.sdf_from} on {self.sdf_frames}" if self.sdf_frames else "no L_SDF"
         stages = ", ".join(f"{k} {v:.1f}" for k, v in self.stage_ms.items())
         why = ", ".join(f"{n} {k}" for k, n in self.lost_because.most_common())
         lost = f"{self.lost} lost ({why})" if why else f"{self.lost} lost"
-        return (f"{self.frames} frames, {lost}, {self.relocalised} relocalised, {sdf}, "
+        free = "".join(f", {k} unmeasured on {n}" for k, n in sorted(self.unmeasured.items()))
+        return (f"{self.frames} frames, {lost}, {self.relocalised} relocalised{free}, {sdf}, "
                 f"{self.fps:.1f} frames/s ({stages} ms)")
 
     def write(self, out: Path) -> None:
@@ -70,7 +75,7 @@ class RunSummary:
 
     def to_dict(self) -> dict:
         return {"frames": self.frames, "lost": self.lost, "lost_because": dict(self.lost_because),
-                "relocalised": self.relocalised,
+                "relocalised": self.relocalised, "unmeasured": dict(sorted(self.unmeasured.items())),
                 "sdf_frames": self.sdf_frames, "sdf_from": self.sdf_from,
                 "seconds": round(self.seconds, 3), "fps": round(self.fps, 2),
                 "stage_ms": {k: round(v, 2) for k, v in self.stage_ms.items()}}
