@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 
 import cv2
@@ -21,6 +22,9 @@ def test_demo_writes_the_whole_report(tmp_path):
     row = re.search(r"^\| ([\d.]+) \| ([\d.]+) \|", report, re.M)  # the metrics table's first row
     assert row and float(row.group(1)) == round(result["metrics"]["add_s_auc"], 2)
     assert result["metrics"]["add_s_auc"] >= 70, result["metrics"]
+    log = [json.loads(x) for x in (tmp_path / "result" / "track.jsonl").read_text().splitlines()]
+    turns = sum(any("turn" in u for u in x.get("unmeasured", [])) for x in log)  # the report counts what it says
+    assert re.search(rf"left a turn unmeasured .*: {turns} of {spec.frames}\.$", report, re.M)
     for image in re.findall(r"!\[[^\]]*\]\(([^)]+)\)", report):  # every picture the report shows is there
         assert cv2.imread(str(tmp_path / image)) is not None, image
     assert "mesh_vs_gt.png" in report

@@ -118,6 +118,10 @@ def _report(spec: SynthSpec, summary: dict, m: dict, plots: list[Path], stills: 
         "",
         "Time per frame (ms): " + ", ".join(f"{k} {v:.1f}" for k, v in summary["stage_ms"].items()),
         "",
+        f"Frames whose data left a turn unmeasured (`unmeasured` in `result/track.jsonl`: on a round shaft the turn "
+        f"about it, which the motion prior carries from the frames before; ADD counts it, ADD-S does not): "
+        f"{summary['unmeasured'].get('turn', 0)} of {summary['frames']}.",
+        "",
         "## Accuracy",
         "",
         *[f"![{p}]({p})" for p in rel],
