@@ -344,6 +344,15 @@ def test_register_then_track_another_video(synth_seq, second_video, tmp_path):
     along, across = first_pose_error(synth_seq, scan_pose0, video, read_poses(out / "ob_in_cam")[video.ids[0]])
     assert along < 0.03, along
     assert across < 0.04, across
+    # Nothing in the first frame of the round shaft tells the registration its turn: the first line says so, about
+    # the shaft's axis in the model's object frame (the scan's first camera axes).
+    from surgtrack.synth.instruments import load_instrument
+
+    scan = open_sequence(synth_seq)
+    shaft = scan.gt_poses()[scan.ids[0]][:3, :3] @ load_instrument("rigid_endoscope").axis
+    first = json.loads((out / "track.jsonl").read_text().splitlines()[0])
+    assert [list(u) for u in first["unmeasured"]] == [["turn"]], first
+    assert abs(np.dot(first["unmeasured"][0]["turn"], shaft)) > np.cos(np.radians(5.0))
 
     # The first mask on the background: the model's instrument is not there.
     elsewhere = Path(shutil.copytree(second_video, tmp_path / "elsewhere"))

@@ -73,6 +73,10 @@ class BaselineTracker(ABC):
         self._update(obs, self.pose)
         return self.pose
 
+    def first_result(self, pose: np.ndarray) -> TrackResult:
+        """The first frame's result, its ``pose`` from `register`: tracked."""
+        return TrackResult(pose, TRACKED, 1.0)
+
     def track(self, frame: Frame, mask: np.ndarray | None = None) -> TrackResult:
         """One tracking step; a frame with too few instrument pixels or a failed alignment is lost (pose None)."""
         t0 = time.perf_counter()

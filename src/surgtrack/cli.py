@@ -370,7 +370,7 @@ def live(
     except RealSenseError as e:
         fail(str(e))
     from .pipeline import RunSummary, frame_record
-    from .tracker import TRACKED, SurgTracker, TrackResult
+    from .tracker import SurgTracker
 
     streamer = writer = tracker = None
     overlay: _OverlayWriter | None = None
@@ -403,7 +403,7 @@ def live(
                     fail(f"{mask}: mask size {first_mask.shape[1]}x{first_mask.shape[0]} != frame size "
                          f"{frame.depth.shape[1]}x{frame.depth.shape[0]}")
                 try:
-                    result = TrackResult(tracker.register(frame, first_mask), TRACKED, 1.0)
+                    result = tracker.first_result(tracker.register(frame, first_mask))
                 except ValueError as e:
                     fail(str(e))
             else:

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from .config import TrackerConfig
 from .io import Frame, ResultWriter, Sequence, SequenceError, write_text_atomic
-from .tracker import LOST, RELOCALISED, TRACKED, SurgTracker, TrackResult
+from .tracker import LOST, RELOCALISED, SurgTracker, TrackResult
 
 
 @dataclass
@@ -43,15 +43,16 @@ class RunSummary:
         return {k: v * 1e3 / n for k, v in self.stage_s.items()}
 
     def add(self, index: int, result: TrackResult) -> None:
-        """Count frame ``index``'s result. Frame 0, registered from its mask, counts as a frame only."""
+        """Count frame ``index``'s result. Frame 0, registered from its mask, counts as a frame and by what it left
+        unmeasured (against a registered model) only."""
         self.frames += 1
+        self.unmeasured.update({u.kind for u in result.unmeasured})
         if index == 0:
             return
         if result.status == LOST:
             self.lost += 1
             self.lost_because[result.reason] += 1
         self.relocalised += result.status == RELOCALISED
-        self.unmeasured.update({u.kind for u in result.unmeasured})
         self.sdf_frames += result.sdf
         if result.sdf and self.sdf_from is None:
             self.sdf_from = index
@@ -118,7 +119,7 @@ def track_sequence(
             pose = tracker.register(first, first.mask)
         except ValueError as e:
             raise SequenceError(seq.root, str(e)) from None
-        registered = TrackResult(pose, TRACKED, 1.0)
+        registered = tracker.first_result(pose)
         writer.write(first.id, pose, frame_record(registered))
         summary.add(0, registered)
         if on_frame is not None:

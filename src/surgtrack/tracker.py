@@ -266,6 +266,12 @@ class SurgTracker:
         self._add_keyframe(node, obs)
         return pose
 
+    def first_result(self, pose: np.ndarray) -> TrackResult:
+        """The first frame's result, its ``pose`` from `register`: tracked, with the directions its solve against a
+        registered model left unmeasured (a turn about a round shaft is then the global registration's guess);
+        without a model the first frame sets the object frame and nothing is left unmeasured."""
+        return TrackResult(pose, TRACKED, 1.0, unmeasured=tuple(self.recent[-1].unmeasured))
+
     def _register_to_model(self, obs: Observation) -> np.ndarray:
         """First pose against a registered model: feature RANSAC with its keyframes, else FPFH registration of
         the masked cloud, refined by the posture graph; the object frame is the model's."""
