@@ -304,7 +304,7 @@ class _OverlayWriter:
                 fail(str(e))
         points = self.tracker.model_points if self.tracker.model_points is not None else np.zeros((0, 3))
         self._video.write(draw_overlay(frame.rgb, result.pose, frame.K, points, result.status,
-                                        reason=result.reason, unmeasured=result.unmeasured))
+                                        reason=result.reason, unmeasured=result.unmeasured_kinds))
 
     def close(self) -> None:
         if self._video is not None:

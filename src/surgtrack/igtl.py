@@ -93,8 +93,7 @@ class PoseStreamer:
                                                      device_name=self.status_device), wait=False)
         self._server.send_message(igtl.StringMessage(result.reason, timestamp=timestamp,
                                                      device_name=self.reason_device), wait=False)
-        free = " ".join(sorted({u.kind for u in result.unmeasured}))
-        self._server.send_message(igtl.StringMessage(free, timestamp=timestamp,
+        self._server.send_message(igtl.StringMessage(" ".join(result.unmeasured_kinds), timestamp=timestamp,
                                                      device_name=self.unmeasured_device), wait=False)
         self.sent += 1
         return True

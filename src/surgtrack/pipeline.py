@@ -46,7 +46,7 @@ class RunSummary:
         """Count frame ``index``'s result. Frame 0, registered from its mask, counts as a frame and by what it left
         unmeasured (against a registered model) only."""
         self.frames += 1
-        self.unmeasured.update({u.kind for u in result.unmeasured})
+        self.unmeasured.update(result.unmeasured_kinds)
         if index == 0:
             return
         if result.status == LOST:

@@ -530,6 +530,7 @@ def optimize_graph(
         if pair is not None and w > 0 and free[pair[0]]:
             one_node_terms.append((*pair, w))
 
+    free_at: dict[int, np.ndarray] = {}  # per prior node, the directions its data left free at the latest step
     for _ in range(cfg.iterations):
         ne = _Normal(n)
 
@@ -570,9 +571,7 @@ def optimize_graph(
         for t, prior in priors:
             if free[t] and (cfg.w_m > 0 or unmeasured is not None):
                 E = C[t] @ prior  # C_t times the prior's pose: identity at the prior
-                W, free_dirs = _null_space_prior(ne.H[t, t], cfg)
-                if unmeasured is not None:
-                    unmeasured[t] = Unmeasured.of(free_dirs)
+                W, free_at[t] = _null_space_prior(ne.H[t, t], cfg)
                 ne.H[t, t] += W
                 ne.g[t] += W @ np.concatenate([E[:3, 3], so3_log(E[:3, :3])])
 
@@ -584,4 +583,6 @@ def optimize_graph(
         if np.abs(step).max() < 1e-10:
             break
 
+    if unmeasured is not None:
+        unmeasured.update({t: Unmeasured.of(v) for t, v in free_at.items()})
     return [poses[k] if not free[k] else inv_T(C[k]) for k in range(n)]

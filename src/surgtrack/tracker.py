@@ -90,6 +90,11 @@ class TrackResult:
     reason: str = ""
     unmeasured: tuple[Unmeasured, ...] = ()
 
+    @property
+    def unmeasured_kinds(self) -> list[str]:
+        """The kinds among ``unmeasured`` ("slide", "turn"), sorted, each once."""
+        return sorted({u.kind for u in self.unmeasured})
+
 
 @dataclass(frozen=True)
 class Observed:
