@@ -94,8 +94,8 @@ class Recorder:
             now["cands"], refined_here = [], now["cands"]
             true = obs.frame.mask
             on = true is not None and 2 * np.count_nonzero(obs.mask & (true > 0)) >= np.count_nonzero(obs.mask)
-            now["sets"].append({"cands": refined_here, "truth": held is not None and self.right(held.node.pose, right),
-                                "on": on,
+            now["sets"].append({"cands": refined_here, "on": on,
+                                "truth": held is not None and self.right(held.node.pose, right),
                                 "chosen": found is not None and self.right(found[0].pose, right)})
             return found
 
