@@ -34,20 +34,20 @@ on timing (the runs are then `surgtrack bench`'s, pose file for pose file).
 from __future__ import annotations
 
 import argparse
-import json
 from collections import Counter
 from pathlib import Path
 
 import numpy as np
+from result_runs import tracker_config
 
-from surgtrack.config import TrackerConfig
 from surgtrack.io import open_sequence, read_poses, read_track_log
 from surgtrack.metrics import add_errors, model_points
 from surgtrack.pipeline import track_sequence
 from surgtrack.tracker import SurgTracker
 
 CLASSES = ("taken right", "right there", "taken wrong", "lost after", "silhouette", "beaten", "appearance",
-           "refined off", "none right", "truth held", "on it")
+           "refined off", "none right")
+ALSO = ("truth held", "on it")  # counted beside taken wrong and none right
 
 
 class Recorder:
@@ -57,7 +57,7 @@ class Recorder:
     def __init__(self, tracker: SurgTracker, gt: list[np.ndarray], pts: np.ndarray, right: float) -> None:
         self.frames: dict[int, dict] = {}
         self.index = -1
-        self.gt, self.pts, self.align = gt, pts, np.eye(4)
+        self.gt, self.pts, self.bound, self.align = gt, pts, right, np.eye(4)
         register, track = tracker.register, tracker.track
         refined, appearance, best = tracker._refined, tracker._appearance, tracker._best_candidate
 
@@ -72,8 +72,8 @@ class Recorder:
 
         def on_refined(obs, feats, pose, edges, last):
             c = refined(obs, feats, pose, edges, last)
-            self._now()["cands"].append({"start": self.right(pose, right),
-                                         "refined": c is not None and self.right(c.node.pose, right),
+            self._now()["cands"].append({"start": self.right(pose, self.index),
+                                         "refined": c is not None and self.right(c.node.pose, self.index),
                                          "pose": None if c is None else c.node.pose.copy(), "looks": None})
             return c
 
@@ -95,16 +95,16 @@ class Recorder:
             true = obs.frame.mask
             on = true is not None and 2 * np.count_nonzero(obs.mask & (true > 0)) >= np.count_nonzero(obs.mask)
             now["sets"].append({"cands": refined_here, "on": on,
-                                "truth": held is not None and self.right(held.node.pose, right),
-                                "chosen": found is not None and self.right(found[0].pose, right)})
+                                "truth": held is not None and self.right(held.node.pose, self.index),
+                                "chosen": found is not None and self.right(found[0].pose, self.index)})
             return found
 
         tracker.register, tracker.track = on_register, on_track
         tracker._refined, tracker._appearance, tracker._best_candidate = on_refined, on_appearance, on_best
 
-    def right(self, pose: np.ndarray, right: float) -> bool:
-        """Whether ``pose`` (tracker's object frame) lies within ADD ``right`` of the truth at the current frame."""
-        return bool(add_errors([pose @ self.align], [self.gt[self.index]], self.pts)[0] < right)
+    def right(self, pose: np.ndarray, index: int) -> bool:
+        """Whether ``pose`` (tracker's object frame) lies within the bound's ADD of frame ``index``'s truth."""
+        return bool(add_errors([pose @ self.align], [self.gt[index]], self.pts)[0] < self.bound)
 
     def _now(self) -> dict:
         return self.frames.setdefault(self.index, {"cands": [], "sets": []})
@@ -140,10 +140,10 @@ def main() -> None:
     ap.add_argument("--right", type=float, default=0.03, help="ADD (m) below which a pose is right")
     ap.add_argument("--only", help="comma-separated sequence names (default: every sequence in DATA)")
     a = ap.parse_args()
-    cfg = TrackerConfig.from_dict(json.loads(a.config.read_text()) if a.config else {"sdf": {"enabled": False}})
+    cfg = tracker_config(a.config)
     names = a.only.split(",") if a.only else sorted(p.name for p in a.data.iterdir() if (p / "cam_K.txt").exists())
     total: Counter = Counter()
-    print(f"{'sequence':<16}" + "".join(f"{c:>12}" for c in ("attempts",) + CLASSES))
+    print(f"{'sequence':<16}" + "".join(f"{c:>12}" for c in ("attempts",) + CLASSES + ALSO))
     for name in names:
         seq = open_sequence(a.data / name)
         gt_by_id = seq.gt_poses()
@@ -155,14 +155,13 @@ def main() -> None:
         counts: Counter = Counter()
         for index, attempt in sorted(rec.frames.items()):
             if attempt["sets"]:
-                rec.index = index
                 pose = est.get(log[index]["frame"])
-                out_right = pose is not None and rec.right(pose, a.right)
+                out_right = pose is not None and rec.right(pose, index)
                 counts.update(classify(attempt, log[index], out_right, cfg.failure.relocalise_min_ncc))
         total += counts
-        print(f"{name:<16}{sum(counts[c] for c in CLASSES[:-2]):>12}" + "".join(f"{counts[c]:>12}" for c in CLASSES),
+        print(f"{name:<16}{sum(counts[c] for c in CLASSES):>12}" + "".join(f"{counts[c]:>12}" for c in CLASSES + ALSO),
               flush=True)
-    print(f"{'all':<16}{sum(total[c] for c in CLASSES[:-2]):>12}" + "".join(f"{total[c]:>12}" for c in CLASSES))
+    print(f"{'all':<16}{sum(total[c] for c in CLASSES):>12}" + "".join(f"{total[c]:>12}" for c in CLASSES + ALSO))
 
 
 if __name__ == "__main__":

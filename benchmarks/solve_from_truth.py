@@ -14,13 +14,12 @@ then the median and 90th percentile of each. Frames come with their mask unless 
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
+from result_runs import tracker_config
 from shaft_errors import sequence_shaft, shaft_parts
 
-from surgtrack.config import TrackerConfig
 from surgtrack.geometry import inv_T
 from surgtrack.io import open_sequence
 from surgtrack.tracker import SurgTracker
@@ -36,7 +35,7 @@ def main() -> None:
     a = ap.parse_args()
     seq = open_sequence(a.seq)
     gt = seq.gt_poses()
-    cfg = TrackerConfig.from_dict(json.loads(a.config.read_text()) if a.config else {"sdf": {"enabled": False}})
+    cfg = tracker_config(a.config)
     tracker = SurgTracker(cfg)
     first = seq[0]
     M = inv_T(gt[first.id]) @ tracker.register(first, first.mask)  # tracked object frame -> true object frame

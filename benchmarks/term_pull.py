@@ -14,13 +14,12 @@ whose poses do not depend on timing.
 from __future__ import annotations
 
 import argparse
-import json
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from result_runs import tracker_config
 
-from surgtrack.config import TrackerConfig
 from surgtrack.geometry import inv_T, rotation_angle_deg
 from surgtrack.io import open_sequence
 from surgtrack.metrics import add_errors, adds_errors, model_points
@@ -46,7 +45,7 @@ def main() -> None:
     seq = open_sequence(a.seq)
     if not 1 <= a.frame < len(seq):
         ap.error(f"frame must lie in 1..{len(seq) - 1}")
-    cfg = TrackerConfig.from_dict(json.loads(a.config.read_text()) if a.config else {"sdf": {"enabled": False}})
+    cfg = tracker_config(a.config)
     tracker = SurgTracker(cfg)
     gt = seq.gt_poses()
     pts = model_points(seq.gt_visible_points(), seq.gt_model()) if gt else None
