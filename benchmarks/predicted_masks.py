@@ -1,7 +1,7 @@
 """The masks the tracker makes without given ones, against the true masks: which fails first, the mask or the pose?
 
     .venv/bin/python benchmarks/predicted_masks.py DATA OUT [--config C.json] [--only SEQ,SEQ] [--off 0.03]
-                                                   [--true-masks [--lost-on-true-masks]]
+                                                   [--true-masks] [--lost-on-true-masks]
 
 Each sequence of DATA is tracked with its first mask only, as `surgtrack track --first-mask-only` tracks it (into
 OUT/SEQ), and the mask each frame was tracked on (`SurgTracker._located`: the mask predicted at the predicted pose,
@@ -18,8 +18,9 @@ With ``--true-masks`` every mask the tracker would make is replaced by the frame
 masks (the Gauss-Newton steps, L_FS against the background, the checks, the model's growth from frames without a
 given mask, the colour search while lost): the run's AUCs are what the first-mask-only path reaches with perfect
 masks, so that #6's gap splits into what the masks cost and what the path without them costs with perfect ones.
-``--lost-on-true-masks`` also re-localises a lost instrument on the true mask (the mask made at the last pose,
-replaced), as a run with every mask does, instead of searching the frame's colour regions.
+``--lost-on-true-masks`` re-localises a lost instrument on the true mask (the mask made at the last pose,
+replaced), as a run with every mask does, instead of searching the frame's colour regions; without
+``--true-masks`` it measures what a perfect search while lost would give the masks the tracker makes.
 
 Printed, one row a sequence: frames tracked on a made mask, the means of precision and recall, the first frame
 precision fell below one half with the ADD-S there, the first frame the ADD-S passed ``--off`` with the precision
@@ -53,25 +54,27 @@ def mask_scores(made: np.ndarray, true: np.ndarray, depth: np.ndarray) -> tuple[
 
 def record_masks(tracker: SurgTracker, true_masks: bool = False, lost_on_true: bool = False
                  ) -> dict[int, tuple[float, float]]:
-    """Wrap ``tracker._located`` so that each frame's mask is scored against the frame's true mask; returns the
-    scores by frame index, filled in as the tracker runs. With ``true_masks`` the tracker's masks (predicted, made
-    again at the tracked pose) are the frames' true masks; with ``lost_on_true`` as well, a lost instrument is
-    re-localised on the mask made at the last pose (the true one) instead of the colour search (`_search`), which
-    runs only with a colour model."""
+    """Wrap ``tracker._located`` so that the mask of each frame tracked on (not re-localised) is scored against the
+    frame's true mask; returns the scores by frame index, filled in as the tracker runs. With ``true_masks`` the
+    tracker's masks (predicted, made again at the tracked pose) are the frames' true masks; with ``lost_on_true`` a
+    lost instrument is re-localised on the true mask (given as the mask made at the last pose) instead of by the
+    colour search (`_search`, which runs only with a colour model)."""
     scores: dict[int, tuple[float, float]] = {}
-    located = tracker._located
-    if true_masks:
-        tracker._predicted_mask = lambda frame, pose: frame.mask > 0
-        if lost_on_true:
-            tracker._colour = lambda: None  # the colour gates and the colour search: no true mask needs them
+    located, predicted, colour = tracker._located, tracker._predicted_mask, tracker._colour
+
+    def mask_for(frame: Frame, pose: np.ndarray) -> np.ndarray:
+        return frame.mask > 0 if true_masks or (lost_on_true and tracker.lost) else predicted(frame, pose)
 
     def on_located(frame: Frame, mask: np.ndarray | None, clock, observed=None):
+        lost = tracker.lost
         found = located(frame, mask, clock, observed)
-        if not isinstance(found, str) and not found[0].mask_given and frame.mask is not None:
+        if not lost and not isinstance(found, str) and not found[0].mask_given and frame.mask is not None:
             scores[frame.index] = mask_scores(found[0].mask, frame.mask > 0, frame.depth)
         return found
 
-    tracker._located = on_located
+    tracker._located, tracker._predicted_mask = on_located, mask_for
+    if lost_on_true:
+        tracker._colour = lambda: None if tracker.lost else colour()
     return scores
 
 
@@ -98,10 +101,8 @@ def main() -> None:
     ap.add_argument("--off", type=float, default=0.03, help="ADD-S (m) beyond which a pose is off")
     ap.add_argument("--true-masks", action="store_true", help="the masks the tracker makes replaced by the true ones")
     ap.add_argument("--lost-on-true-masks", action="store_true",
-                    help="with --true-masks: re-localise on the true mask, not by the colour search")
+                    help="re-localise a lost instrument on its true mask, not by the colour search")
     a = ap.parse_args()
-    if a.lost_on_true_masks and not a.true_masks:
-        ap.error("--lost-on-true-masks needs --true-masks")
     cfg = tracker_config(a.config)
     names = a.only.split(",") if a.only else sorted(p.name for p in a.data.iterdir() if (p / "cam_K.txt").exists())
     print(f"{'sequence':<16}{'masks':>6}{'precision':>10}{'recall':>8}  {'mask off: frame, ADD-S cm':<26}"
