@@ -31,11 +31,8 @@ pose file).
 
 from __future__ import annotations
 
-import argparse
-from pathlib import Path
-
 import numpy as np
-from result_runs import tracker_config
+from result_runs import sequence_names, tracker_config, tracking_parser
 
 from surgtrack.io import Frame, open_sequence
 from surgtrack.metrics import evaluate
@@ -93,18 +90,14 @@ def which_first(mask_off: int | None, pose_off: int | None) -> str:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("data", type=Path)
-    ap.add_argument("out", type=Path)
-    ap.add_argument("--config", type=Path, help="tracker configuration (JSON); default: the SDF off")
-    ap.add_argument("--only", help="comma-separated sequence names (default: every sequence in DATA)")
+    ap = tracking_parser(__doc__.splitlines()[0])
     ap.add_argument("--off", type=float, default=0.03, help="ADD-S (m) beyond which a pose is off")
     ap.add_argument("--true-masks", action="store_true", help="the masks the tracker makes replaced by the true ones")
     ap.add_argument("--lost-on-true-masks", action="store_true",
                     help="re-localise a lost instrument on its true mask, not by the colour search")
     a = ap.parse_args()
     cfg = tracker_config(a.config)
-    names = a.only.split(",") if a.only else sorted(p.name for p in a.data.iterdir() if (p / "cam_K.txt").exists())
+    names = sequence_names(a.data, a.only)
     print(f"{'sequence':<16}{'masks':>6}{'precision':>10}{'recall':>8}  {'mask off: frame, ADD-S cm':<26}"
           f"{'pose off: frame, precision':<27}{'first':<9}ADD-S / ADD")
     aucs = []

@@ -33,12 +33,10 @@ on timing (the runs are then `surgtrack bench`'s, pose file for pose file).
 
 from __future__ import annotations
 
-import argparse
 from collections import Counter
-from pathlib import Path
 
 import numpy as np
-from result_runs import tracker_config
+from result_runs import sequence_names, tracker_config, tracking_parser
 
 from surgtrack.io import open_sequence, read_poses, read_track_log
 from surgtrack.metrics import add_errors, model_points
@@ -132,16 +130,12 @@ def classify(attempt: dict, status: dict, out_right: bool, min_ncc: float) -> li
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("data", type=Path)
-    ap.add_argument("out", type=Path)
+    ap = tracking_parser(__doc__.splitlines()[0])
     ap.add_argument("--first-mask-only", action="store_true")
-    ap.add_argument("--config", type=Path, help="tracker configuration (JSON); default: the SDF off")
     ap.add_argument("--right", type=float, default=0.03, help="ADD (m) below which a pose is right")
-    ap.add_argument("--only", help="comma-separated sequence names (default: every sequence in DATA)")
     a = ap.parse_args()
     cfg = tracker_config(a.config)
-    names = a.only.split(",") if a.only else sorted(p.name for p in a.data.iterdir() if (p / "cam_K.txt").exists())
+    names = sequence_names(a.data, a.only)
     total: Counter = Counter()
     print(f"{'sequence':<16}" + "".join(f"{c:>12}" for c in ("attempts",) + CLASSES + ALSO))
     for name in names:

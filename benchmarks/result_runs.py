@@ -1,5 +1,6 @@
 """The command line the benchmark scripts share: RESULTS (one result folder a sequence) and DATA (the rendered
-sequences of the same names) for those that read results, ``--config`` for those that track."""
+sequences of the same names) for those that read results; DATA, OUT, ``--config`` and ``--only`` for those that
+track a suite."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
+from recorded import sequences
 
 from surgtrack.config import TrackerConfig
 from surgtrack.io import Sequence, open_sequence, read_poses
@@ -18,6 +20,22 @@ def tracker_config(path: Path | None) -> TrackerConfig:
     """The configuration a tracking script runs: ``path``'s JSON, else the SDF off, whose poses do not depend on
     how fast the background fit runs."""
     return TrackerConfig.from_dict(json.loads(path.read_text()) if path else {"sdf": {"enabled": False}})
+
+
+def tracking_parser(description: str) -> argparse.ArgumentParser:
+    """The arguments of a script that tracks the sequences of a suite: DATA, OUT (one result folder a sequence),
+    ``--config`` (`tracker_config`) and ``--only``; the script adds its own."""
+    ap = argparse.ArgumentParser(description=description)
+    ap.add_argument("data", type=Path)
+    ap.add_argument("out", type=Path)
+    ap.add_argument("--config", type=Path, help="tracker configuration (JSON); default: the SDF off")
+    ap.add_argument("--only", help="comma-separated sequence names (default: every sequence in DATA)")
+    return ap
+
+
+def sequence_names(data: Path, only: str | None) -> list[str]:
+    """``--only``'s names, else every sequence folder of DATA (`recorded.sequences`)."""
+    return only.split(",") if only else [p.name for p in sequences(data)]
 
 
 def result_runs(description: str, marker: str) -> Iterator[tuple[Path, Sequence, dict[str, np.ndarray],
