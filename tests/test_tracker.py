@@ -380,6 +380,31 @@ def test_tracks_from_the_first_mask_only(synth_seq, tmp_path):
     truth = {f.id: f.mask & (f.depth > 0) for f in seq}
     iou = [(k.mask & truth[k.frame_id]).sum() / (k.mask | truth[k.frame_id]).sum() for k in tracker.pool.keyframes[1:]]
     assert min(iou) > 0.78 and np.mean(iou) > 0.87, iou  # not masked again: mean 0.85
+    lines = [json.loads(x) for x in (tmp_path / "out" / "track.jsonl").read_text().splitlines()]
+    assert "colour" not in lines[0]  # the first frame's mask is given
+    assert all(("colour" in x) == (x["status"] != LOST) for x in lines[1:])
+
+
+def test_without_masks_each_posed_frame_says_how_much_its_made_mask_looks_like_the_instrument(synth_seq):
+    """`TrackResult.colour`: the mean colour posterior of the mask the tracker made, high while it holds the
+    instrument; the same frame with the mask's pixels painted in the first frame's surroundings' colours (a hand
+    the model grew into looks so) is still posed, on its depth, but says so. A frame with its mask says nothing.
+    The colour gates of the made mask, which would take such pixels out, are off: a glove's colours pass them."""
+    seq = open_sequence(synth_seq)
+    cfg = TrackerConfig()
+    cfg.sdf.enabled = False
+    cfg.preprocess.predicted_mask_colour = cfg.preprocess.predicted_mask_colour_inside = 0.0
+    tracker = tracked(seq, cfg, 5)
+    assert tracker.track(seq[5], seq[5].mask).colour is None
+    made = tracker.track(seq[6])
+    assert made.pose is not None and made.colour > 0.7, made.colour
+    frame = seq[6]
+    ring = tracker.colour._ring(seq[0].mask) & (seq[0].depth > 0)
+    surroundings = np.median(seq[0].rgb[ring], axis=0).astype(np.uint8)
+    painted = replace(frame, rgb=np.where(frame.mask[..., None], surroundings, frame.rgb))
+    tracker = tracked(seq, cfg, 6)
+    hidden = tracker.track(painted)
+    assert hidden.pose is not None and hidden.colour < 0.3, hidden.colour
 
 
 def test_a_frame_with_its_mask_takes_fewer_gauss_newton_steps(synth_seq, monkeypatch):

@@ -85,12 +85,15 @@ class RunSummary:
 def frame_record(result: TrackResult) -> dict:
     """A frame's line of OUT/track.jsonl beside its frame id: status (and why, when lost), confidence, whether L_SDF
     (eq. 11) was in its graph, for a posed frame the directions its data left free (``"unmeasured"``: a list of
-    ``{"turn": axis}`` or ``{"slide": axis}``, unit vectors in the object frame), and ms per stage."""
+    ``{"turn": axis}`` or ``{"slide": axis}``, unit vectors in the object frame), for a posed frame tracked on a
+    mask the tracker made how instrument-like that mask looks (``"colour"``, `TrackResult.colour`), and ms per
+    stage."""
     why = {"reason": result.reason} if result.status == LOST else {}
     free = {} if result.status == LOST else {
         "unmeasured": [{u.kind: [round(float(a), 3) for a in u.axis]} for u in result.unmeasured]}
+    made = {} if result.colour is None else {"colour": round(result.colour, 3)}
     return {"status": result.status, **why, "confidence": round(result.confidence, 4), "sdf": result.sdf, **free,
-            "ms": {k: round(v * 1e3, 2) for k, v in result.timings.items()}}
+            **made, "ms": {k: round(v * 1e3, 2) for k, v in result.timings.items()}}
 
 
 def track_sequence(

@@ -79,7 +79,8 @@ class TrackResult:
     inliers, whether the Instrument SDF's term L_SDF (eq. 11) was in the posture graph that gave the pose, for a
     lost frame why (`HIDDEN`, `NO_DEPTH`, `NO_POSE`, `UNSURE`, `SEEN_PAST` or `NOT_TRIED`; "" otherwise), and the
     directions of the pose that graph's data left free, held by the motion prior (`posture_graph.Unmeasured`: the
-    turn about a round shaft, the slide along a bare one)."""
+    turn about a round shaft, the slide along a bare one); for a posed frame tracked on a mask the tracker made,
+    that mask's mean colour posterior (`SurgTracker._mask_colour`)."""
 
     pose: np.ndarray | None
     status: str
@@ -89,6 +90,7 @@ class TrackResult:
     sdf: bool = False
     reason: str = ""
     unmeasured: tuple[Unmeasured, ...] = ()
+    colour: float | None = None  # a posed frame without a given mask: how instrument-like its made mask looks
 
     @property
     def unmeasured_kinds(self) -> list[str]:
@@ -404,7 +406,7 @@ class SurgTracker:
             self._add_keyframe(node, obs)
         clock.lap("pool")
         return TrackResult(pose, status, confidence, clock.laps, inliers, node.sdf,
-                           unmeasured=tuple(node.unmeasured))
+                           unmeasured=tuple(node.unmeasured), colour=self._mask_colour(obs))
 
     # -------------------------------------------------------------------------------------------------- stages
 
@@ -507,6 +509,14 @@ class SurgTracker:
         pre = self.cfg.preprocess
         gates = (pre.predicted_mask_colour, pre.predicted_mask_colour_inside, pre.predicted_mask_grow)
         return self.colour if max(gates) > 0 else None
+
+    def _mask_colour(self, obs: Observation) -> float | None:
+        """The mean colour posterior (`ColourModel.posterior`, the first frame's colours against its surroundings')
+        of the pixels of a mask the tracker made; None for a given mask. A made mask that has taken in a hand or
+        tissue looks less like the instrument; so do parts of it in colours the first frame did not show."""
+        if obs.mask_given or self.colour.instrument is None or not obs.mask.any():
+            return None
+        return float(np.mean(self.colour.posterior(obs.frame.rgb[obs.mask])))
 
     def _node(self, obs: Observation, feats: Features, pose: np.ndarray) -> _Node:
         factor = max(1, round(self.cfg.graph.depth_downscale * obs.shape[1] / 640))
