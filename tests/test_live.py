@@ -275,7 +275,7 @@ def test_streams_tracked_poses_in_millimetres_and_lost_status_with_its_reason(li
                 pose = poses.get(rec["frame"])
                 free = tuple(Unmeasured(k, np.array(v)) for u in rec.get("unmeasured", []) for k, v in u.items())
                 assert streamer.send(TrackResult(pose, rec["status"], 1.0, reason=rec.get("reason", ""),
-                                                 unmeasured=free))
+                                                 unmeasured=free, colour=rec.get("colour")))
                 status = client.wait_for_message("TrackingStatus", timeout=5)
                 assert status is not None and status.string == rec["status"]
                 reason = client.wait_for_message("Why", timeout=5)
@@ -283,6 +283,12 @@ def test_streams_tracked_poses_in_millimetres_and_lost_status_with_its_reason(li
                 said = client.wait_for_message("TrackingUnmeasured", timeout=5)
                 assert said is not None and said.string == " ".join(sorted({k for u in rec.get("unmeasured", [])
                                                                              for k in u}))
+                colour = client.wait_for_message("TrackingMaskColour", timeout=5)
+                assert colour is not None
+                if "colour" in rec:
+                    assert float(colour.string) == pytest.approx(rec["colour"], abs=5e-4)
+                else:
+                    assert colour.string == ""
                 if pose is None:
                     assert client.wait_for_message("Endoscope", timeout=0.3) is None
                     continue
@@ -294,6 +300,7 @@ def test_streams_tracked_poses_in_millimetres_and_lost_status_with_its_reason(li
             client.stop()
     assert streamer.sent == len(records)
     assert any(rec.get("unmeasured") for rec in records)  # the recording's shaft leaves its turn free on some frames
+    assert sum("colour" in rec for rec in records) == len(poses) - 1  # live masks are made, but the first frame's
 
 
 def test_streamer_sends_nothing_without_a_client_and_checks_names():
@@ -305,6 +312,8 @@ def test_streamer_sends_nothing_without_a_client_and_checks_names():
         PoseStreamer(port=0, status_device="Tool", reason_device="Tool")
     with pytest.raises(ValueError, match="differ"):
         PoseStreamer(port=0, unmeasured_device="TrackingStatus")
+    with pytest.raises(ValueError, match="differ"):
+        PoseStreamer(port=0, colour_device="TrackingUnmeasured")
     T = np.eye(4)
     T[:3, 3] = [0.01, -0.02, 0.3]
     np.testing.assert_allclose(pose_to_igtl(T)[:3, 3], [10.0, -20.0, 300.0])
@@ -413,9 +422,10 @@ def test_track_writes_an_overlay_video(synth_seq: Path, fast_config: Path, tmp_p
     assert len(read_poses(tmp_path / "out" / "ob_in_cam")) >= 1
 
 
-def test_the_overlay_names_what_a_posed_frame_left_unmeasured():
-    """The label of a frame whose turn its data left free reads "tracked, turn unmeasured": the text runs on beyond
-    "tracked" in the label's band and nowhere else; a lost frame's label stays as it was."""
+def test_the_overlay_names_what_a_posed_frame_left_unmeasured_and_its_made_masks_colour():
+    """The label of a frame whose turn its data left free reads "tracked, turn unmeasured", of one tracked on a mask
+    the tracker made "tracked, colour 0.42": the text runs on beyond "tracked" in the label's band and nowhere else;
+    a lost frame's label stays as it was."""
     rgb = np.zeros((240, 320, 3), np.uint8)
     K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
     pose = np.eye(4)
@@ -423,9 +433,11 @@ def test_the_overlay_names_what_a_posed_frame_left_unmeasured():
     points = np.random.default_rng(0).uniform(-0.01, 0.01, (200, 3))
     turn = ["turn"]
     plain = draw_overlay(rgb, pose, K, points, "tracked")
-    named = draw_overlay(rgb, pose, K, points, "tracked", unmeasured=turn)
-    rows, cols = np.nonzero((plain != named).any(-1))
-    assert len(rows) > 0 and rows.max() < 40
-    assert cols.min() > np.nonzero(plain[:40].any(-1))[1].max() - 10  # after "tracked", not over it
+    for named in (draw_overlay(rgb, pose, K, points, "tracked", unmeasured=turn),
+                  draw_overlay(rgb, pose, K, points, "tracked", colour=0.42)):
+        rows, cols = np.nonzero((plain != named).any(-1))
+        assert len(rows) > 0 and rows.max() < 40
+        assert cols.min() > np.nonzero(plain[:40].any(-1))[1].max() - 10  # after "tracked", not over it
     lost = draw_overlay(rgb, None, K, points, "lost", reason="hidden")
-    assert np.array_equal(lost, draw_overlay(rgb, None, K, points, "lost", reason="hidden", unmeasured=turn))
+    assert np.array_equal(lost, draw_overlay(rgb, None, K, points, "lost", reason="hidden", unmeasured=turn,
+                                             colour=0.42))

@@ -8,7 +8,13 @@ from typing import Annotated
 
 import typer
 
-from .igtl import DEFAULT_DEVICE, DEFAULT_REASON_DEVICE, DEFAULT_STATUS_DEVICE, DEFAULT_UNMEASURED_DEVICE
+from .igtl import (
+    DEFAULT_COLOUR_DEVICE,
+    DEFAULT_DEVICE,
+    DEFAULT_REASON_DEVICE,
+    DEFAULT_STATUS_DEVICE,
+    DEFAULT_UNMEASURED_DEVICE,
+)
 from .io import SequenceError
 
 app = typer.Typer(help="CAD-free 6-DoF tracking and reconstruction of surgical instruments from RGB-D video.",
@@ -304,7 +310,8 @@ class _OverlayWriter:
                 fail(str(e))
         points = self.tracker.model_points if self.tracker.model_points is not None else np.zeros((0, 3))
         self._video.write(draw_overlay(frame.rgb, result.pose, frame.K, points, result.status,
-                                        reason=result.reason, unmeasured=result.unmeasured_kinds))
+                                        reason=result.reason, unmeasured=result.unmeasured_kinds,
+                                        colour=result.colour))
 
     def close(self) -> None:
         if self._video is not None:
@@ -333,6 +340,9 @@ def live(
     unmeasured_device: Annotated[str, typer.Option(help="OpenIGTLink device name of the STRING messages saying what "
                                                         "the frame's data left free (turn, slide; empty: nothing)")]
     = DEFAULT_UNMEASURED_DEVICE,
+    colour_device: Annotated[str, typer.Option(help="OpenIGTLink device name of the STRING messages saying how "
+                                                    "instrument-like the frame's made mask looks (empty: none)")]
+    = DEFAULT_COLOUR_DEVICE,
     out: Annotated[Path | None, typer.Option("--out", "-o", help="also write ob_in_cam/ and track.jsonl here")]
     = None,
     video: Annotated[Path | None, typer.Option(help="write an overlay video")] = None,
@@ -382,11 +392,12 @@ def live(
 
             try:
                 streamer = PoseStreamer(igtl_port, device_name, status_device, interface=igtl_interface,
-                                        reason_device=reason_device, unmeasured_device=unmeasured_device)
+                                        reason_device=reason_device, unmeasured_device=unmeasured_device,
+                                        colour_device=colour_device)
             except (OSError, ValueError) as e:
                 fail(f"OpenIGTLink server on port {igtl_port}: {e}")
-            typer.echo(f"streaming {device_name} (mm), {status_device}, {reason_device} and {unmeasured_device} over "
-                       f"OpenIGTLink on port {streamer.port}")
+            typer.echo(f"streaming {device_name} (mm), {status_device}, {reason_device}, {unmeasured_device} and "
+                       f"{colour_device} over OpenIGTLink on port {streamer.port}")
         if out is not None:
             writer = ResultWriter(out, cfg.to_dict())
         tracker = SurgTracker(cfg, model=instrument_model)

@@ -39,7 +39,7 @@ def run_demo(out: Path | str, spec: SynthSpec = DEMO_SPEC, first_mask_only: bool
     def on_frame(frame: Frame, result: TrackResult) -> None:
         pts = tracker.model_points if tracker.model_points is not None else np.zeros((0, 3))
         img = draw_overlay(frame.rgb, result.pose, frame.K, pts, result.status, reason=result.reason,
-                           unmeasured=result.unmeasured_kinds)
+                           unmeasured=result.unmeasured_kinds, colour=result.colour)
         video.write(img)
         if frame.index in stills:
             path = out / f"overlay_{frame.id}.png"

@@ -3,7 +3,9 @@
 Every frame sends a STRING message on the status device (``tracked``, ``relocalised`` or ``lost``) and one on the
 reason device (why a lost frame is lost: ``hidden``, ``no depth``, ... as in track.jsonl; empty when it has a pose)
 and one on the unmeasured device (what the frame's data left free, as in track.jsonl's ``unmeasured``: ``turn``,
-``slide`` or ``slide turn``; empty when nothing, or lost);
+``slide`` or ``slide turn``; empty when nothing, or lost) and one on the colour device (how instrument-like the
+mask the tracker made for the frame looks, as in track.jsonl's ``colour``: ``0.870``; empty with a given mask, or
+lost);
 a frame with a pose also sends a TRANSFORM message on the pose device: the object-to-camera pose with its
 translation in millimetres, the unit Slicer and PLUS use. A lost frame sends no transform, so a receiver keeps the
 last valid one and reads the status to know it is stale. The reason has a device of its own so that a receiver
@@ -28,6 +30,7 @@ DEFAULT_DEVICE = "InstrumentToCamera"
 DEFAULT_STATUS_DEVICE = "TrackingStatus"
 DEFAULT_REASON_DEVICE = "TrackingLostReason"
 DEFAULT_UNMEASURED_DEVICE = "TrackingUnmeasured"
+DEFAULT_COLOUR_DEVICE = "TrackingMaskColour"
 IGTL_DEVICE_NAME_BYTES = 20  # the header's device-name field
 
 
@@ -57,12 +60,14 @@ class PoseStreamer:
 
     def __init__(self, port: int = 18944, device_name: str = DEFAULT_DEVICE,
                  status_device: str = DEFAULT_STATUS_DEVICE, interface: str | None = None,
-                 reason_device: str = DEFAULT_REASON_DEVICE, unmeasured_device: str = DEFAULT_UNMEASURED_DEVICE):
+                 reason_device: str = DEFAULT_REASON_DEVICE, unmeasured_device: str = DEFAULT_UNMEASURED_DEVICE,
+                 colour_device: str = DEFAULT_COLOUR_DEVICE):
         import pyigtl
 
         self._pyigtl = pyigtl
-        names = [device_name, status_device, reason_device, unmeasured_device]
-        self.device_name, self.status_device, self.reason_device, self.unmeasured_device = map(_check_name, names)
+        names = [device_name, status_device, reason_device, unmeasured_device, colour_device]
+        (self.device_name, self.status_device, self.reason_device, self.unmeasured_device,
+         self.colour_device) = map(_check_name, names)
         if len(set(names)) < len(names):
             raise ValueError(f"OpenIGTLink device names {', '.join(map(repr, names))} must differ")
         main_thread = threading.current_thread() is threading.main_thread()
@@ -80,8 +85,8 @@ class PoseStreamer:
         return bool(self._server.is_connected())
 
     def send(self, result: TrackResult, timestamp: float | None = None) -> bool:
-        """Send one frame's status, lost reason and unmeasured directions (and transform when it has a pose);
-        False when no client is connected."""
+        """Send one frame's status, lost reason, unmeasured directions and made mask's colour (and transform when
+        it has a pose); False when no client is connected."""
         if not self.connected:
             return False
         igtl = self._pyigtl
@@ -95,6 +100,9 @@ class PoseStreamer:
                                                      device_name=self.reason_device), wait=False)
         self._server.send_message(igtl.StringMessage(" ".join(result.unmeasured_kinds), timestamp=timestamp,
                                                      device_name=self.unmeasured_device), wait=False)
+        colour = "" if result.colour is None else f"{result.colour:.3f}"
+        self._server.send_message(igtl.StringMessage(colour, timestamp=timestamp, device_name=self.colour_device),
+                                  wait=False)
         self.sent += 1
         return True
 

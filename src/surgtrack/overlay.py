@@ -14,10 +14,11 @@ from .masking import render_depth
 
 def draw_overlay(rgb: np.ndarray, pose: np.ndarray | None, K: np.ndarray, points_obj: np.ndarray,
                  status: str, axis_len: float = 0.03, reason: str = "",
-                 unmeasured: Sequence[str] = ()) -> np.ndarray:
+                 unmeasured: Sequence[str] = (), colour: float | None = None) -> np.ndarray:
     """RGB frame with the model's silhouette outline (green) and object axes at ``pose``; lost frames say so, and
     why (``reason``, `TrackResult.reason`); a posed frame names what its data left unmeasured (``unmeasured``,
-    `TrackResult.unmeasured_kinds`: "turn unmeasured" on a round shaft)."""
+    `TrackResult.unmeasured_kinds`: "turn unmeasured" on a round shaft) and, tracked on a mask the tracker made,
+    how instrument-like that mask looks (``colour``, `TrackResult.colour`)."""
     img = rgb.copy()
     if pose is None:
         cv2.rectangle(img, (0, 0), (img.shape[1] - 1, img.shape[0] - 1), (255, 0, 0), 6)
@@ -31,9 +32,10 @@ def draw_overlay(rgb: np.ndarray, pose: np.ndarray | None, K: np.ndarray, points
     uv, z = project(transform(pose, axes), K)
     if np.all(z > 0):
         o = tuple(int(x) for x in uv[0])
-        for k, colour in zip(range(1, 4), [(255, 0, 0), (0, 255, 0), (0, 0, 255)], strict=True):
-            cv2.line(img, o, tuple(int(x) for x in uv[k]), colour, 2, cv2.LINE_AA)
-    label = ", ".join([status] + [f"{k} unmeasured" for k in unmeasured])
+        for k, axis_colour in zip(range(1, 4), [(255, 0, 0), (0, 255, 0), (0, 0, 255)], strict=True):
+            cv2.line(img, o, tuple(int(x) for x in uv[k]), axis_colour, 2, cv2.LINE_AA)
+    made = [] if colour is None else [f"colour {colour:.2f}"]
+    label = ", ".join([status] + [f"{k} unmeasured" for k in unmeasured] + made)
     cv2.putText(img, label, (12, 30), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (255, 255, 255), 2, cv2.LINE_AA)
     return img
 
