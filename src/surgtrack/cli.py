@@ -298,9 +298,7 @@ class _OverlayWriter:
         self._video = None
 
     def write(self, frame, result) -> None:
-        import numpy as np
-
-        from .overlay import OverlayVideo, draw_overlay
+        from .overlay import OverlayVideo, draw_result
 
         if self._video is None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -308,10 +306,7 @@ class _OverlayWriter:
                 self._video = OverlayVideo(self.path, (frame.rgb.shape[1], frame.rgb.shape[0]), self.fps)
             except OSError as e:
                 fail(str(e))
-        points = self.tracker.model_points if self.tracker.model_points is not None else np.zeros((0, 3))
-        self._video.write(draw_overlay(frame.rgb, result.pose, frame.K, points, result.status,
-                                        reason=result.reason, unmeasured=result.unmeasured_kinds,
-                                        colour=result.colour))
+        self._video.write(draw_result(frame, result, self.tracker.model_points))
 
     def close(self) -> None:
         if self._video is not None:

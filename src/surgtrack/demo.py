@@ -14,7 +14,7 @@ import trimesh
 from .config import TrackerConfig
 from .io import Frame, open_sequence, read_poses, write_text_atomic
 from .metrics import evaluate
-from .overlay import OverlayVideo, draw_overlay
+from .overlay import OverlayVideo, draw_result
 from .pipeline import track_sequence
 from .plots import plot_evaluation
 from .synth import SynthSpec, render_sequence
@@ -37,9 +37,7 @@ def run_demo(out: Path | str, spec: SynthSpec = DEMO_SPEC, first_mask_only: bool
     still_paths: list[Path] = []
 
     def on_frame(frame: Frame, result: TrackResult) -> None:
-        pts = tracker.model_points if tracker.model_points is not None else np.zeros((0, 3))
-        img = draw_overlay(frame.rgb, result.pose, frame.K, pts, result.status, reason=result.reason,
-                           unmeasured=result.unmeasured_kinds, colour=result.colour)
+        img = draw_result(frame, result, tracker.model_points)
         video.write(img)
         if frame.index in stills:
             path = out / f"overlay_{frame.id}.png"

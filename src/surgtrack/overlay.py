@@ -4,12 +4,17 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
 from .geometry import project, transform
 from .masking import render_depth
+
+if TYPE_CHECKING:
+    from .io import Frame
+    from .tracker import TrackResult
 
 
 def draw_overlay(rgb: np.ndarray, pose: np.ndarray | None, K: np.ndarray, points_obj: np.ndarray,
@@ -38,6 +43,14 @@ def draw_overlay(rgb: np.ndarray, pose: np.ndarray | None, K: np.ndarray, points
     label = ", ".join([status] + [f"{k} unmeasured" for k in unmeasured] + made)
     cv2.putText(img, label, (12, 30), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (255, 255, 255), 2, cv2.LINE_AA)
     return img
+
+
+def draw_result(frame: Frame, result: TrackResult, points_obj: np.ndarray | None) -> np.ndarray:
+    """`draw_overlay` of a tracked ``frame`` with all its ``result`` says, the model's points ``points_obj`` (the
+    tracker's `model_points`; None before it has any) outlined at its pose."""
+    points = points_obj if points_obj is not None else np.zeros((0, 3))
+    return draw_overlay(frame.rgb, result.pose, frame.K, points, result.status, reason=result.reason,
+                        unmeasured=result.unmeasured_kinds, colour=result.colour)
 
 
 class OverlayVideo:
