@@ -8,19 +8,16 @@ give a pose (the evaluation counts them as misses): the ADD-S / ADD AUC a run ca
 
 from __future__ import annotations
 
-import argparse
 from collections import Counter
-from pathlib import Path
 
 import numpy as np
+from result_runs import result_folders, results_parser
 
 from surgtrack.io import open_sequence, read_mask, read_track_log
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("results", type=Path, help="one result folder a sequence (OUT/track.jsonl)")
-    ap.add_argument("data", type=Path, help="the rendered sequences of the same names, with their true masks")
+    ap = results_parser(__doc__.splitlines()[0])
     ap.add_argument("--min-pixels", type=int, default=150, help="a true mask this large showed the instrument")
     ap.add_argument("--unseen", type=int, default=100, help="a true mask smaller than this: nothing to track")
     a = ap.parse_args()
@@ -29,7 +26,7 @@ def main() -> None:
     print("|---|---|---|---|---|---|")
     reasons: Counter[str] = Counter()
     ceilings, lost_all, shown_all = [], 0, 0
-    for out in sorted(p for p in a.results.iterdir() if (p / "track.jsonl").exists()):
+    for out in result_folders(a.results, "track.jsonl"):
         seq = open_sequence(a.data / out.name)
         area = {}
         for i, f in enumerate(seq.ids):

@@ -14,13 +14,11 @@ one's). For comparison, the last row: the share whose ``confidence`` (points nea
 
 from __future__ import annotations
 
-import argparse
-from pathlib import Path
-
 import numpy as np
+from result_runs import result_folders, results_parser
 
 from surgtrack.io import open_sequence, read_track_log
-from surgtrack.metrics import evaluate
+from surgtrack.metrics import WRONG_ERR, evaluate
 
 THRESHOLDS = (0.3, 0.4, 0.45, 0.5, 0.6)
 
@@ -38,10 +36,8 @@ def _median(x: np.ndarray) -> str:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("results", type=Path)
-    ap.add_argument("data", type=Path)
-    ap.add_argument("--wrong", type=float, default=0.05, help="ADD-S (m) beyond which a pose is wrong")
+    ap = results_parser(__doc__.splitlines()[0])
+    ap.add_argument("--wrong", type=float, default=WRONG_ERR, help="ADD-S (m) beyond which a pose is wrong")
     ap.add_argument("--right", type=float, default=0.02, help="ADD-S (m) within which a pose is right")
     a = ap.parse_args()
     kinds = ("right", "between", "wrong")
@@ -49,7 +45,7 @@ def main() -> None:
     sure: dict[str, list[float]] = {k: [] for k in kinds}  # their confidence
     print("| sequence | frames with a made mask | right / between / wrong | median colour: right / between / wrong |")
     print("|---|---|---|---|")
-    for out in sorted(p for p in a.results.iterdir() if (p / "track.jsonl").exists()):
+    for out in result_folders(a.results, "track.jsonl"):
         errors = evaluate(out, open_sequence(a.data / out.name))["errors"]["add_s"]
         seen = {k: [] for k in kinds}
         for line in read_track_log(out):

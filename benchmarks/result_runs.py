@@ -38,14 +38,25 @@ def sequence_names(data: Path, only: str | None) -> list[str]:
     return only.split(",") if only else [p.name for p in sequences(data)]
 
 
+def results_parser(description: str) -> argparse.ArgumentParser:
+    """The arguments of a script that reads results: RESULTS (one result folder a sequence) and DATA (the rendered
+    sequences of the same names); the script adds its own."""
+    ap = argparse.ArgumentParser(description=description)
+    ap.add_argument("results", type=Path, help="one result folder a sequence")
+    ap.add_argument("data", type=Path, help="the rendered sequences of the same names")
+    return ap
+
+
+def result_folders(results: Path, marker: str) -> list[Path]:
+    """The result folders of RESULTS holding ``marker`` (a file or folder of a result), by name."""
+    return sorted(p for p in results.iterdir() if (p / marker).exists())
+
+
 def result_runs(description: str, marker: str) -> Iterator[tuple[Path, Sequence, dict[str, np.ndarray],
                                                                dict[str, np.ndarray]]]:
-    """Parse RESULTS and DATA from the command line; yield each result folder holding ``marker``, its sequence,
-    the ground-truth poses and the tracked ones."""
-    ap = argparse.ArgumentParser(description=description)
-    ap.add_argument("results", type=Path)
-    ap.add_argument("data", type=Path)
-    a = ap.parse_args()
-    for out in sorted(p for p in a.results.iterdir() if (p / marker).exists()):
+    """Parse RESULTS and DATA from the command line (`results_parser`); yield each result folder holding
+    ``marker``, its sequence, the ground-truth poses and the tracked ones."""
+    a = results_parser(description).parse_args()
+    for out in result_folders(a.results, marker):
         seq = open_sequence(a.data / out.name)
         yield out, seq, seq.gt_poses(), read_poses(out / "ob_in_cam")

@@ -514,9 +514,10 @@ class SurgTracker:
         """The mean colour posterior (`ColourModel.posterior`, the first frame's colours against its surroundings')
         of the pixels of a mask the tracker made; None for a given mask. A made mask that has taken in a hand or
         tissue looks less like the instrument; so do parts of it in colours the first frame did not show."""
-        if obs.mask_given or self.colour.instrument is None or not obs.mask.any():
+        mask = obs.mask[obs.box]  # the mask lies in the crop: selecting there, not over the image, is the cost
+        if obs.mask_given or self.colour.instrument is None or not mask.any():
             return None
-        return float(np.mean(self.colour.posterior(obs.frame.rgb[obs.mask])))
+        return float(np.mean(self.colour.posterior(obs.frame.rgb[obs.box][mask])))
 
     def _node(self, obs: Observation, feats: Features, pose: np.ndarray) -> _Node:
         factor = max(1, round(self.cfg.graph.depth_downscale * obs.shape[1] / 640))
