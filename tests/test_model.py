@@ -345,14 +345,19 @@ def test_register_then_track_another_video(synth_seq, second_video, tmp_path):
     assert along < 0.03, along
     assert across < 0.04, across
     # Nothing in the first frame of the round shaft tells the registration its turn: the first line says so, about
-    # the shaft's axis in the model's object frame (the scan's first camera axes).
+    # the shaft's axis in the model's object frame (the scan's first camera axes). Its bare stretch may leave the
+    # slide along the shaft unmeasured too (it does with some floating-point kernels): along the same axis.
     from surgtrack.synth.instruments import load_instrument
 
     scan = open_sequence(synth_seq)
     shaft = scan.gt_poses()[scan.ids[0]][:3, :3] @ load_instrument("rigid_endoscope").axis
     first = json.loads((out / "track.jsonl").read_text().splitlines()[0])
-    assert [list(u) for u in first["unmeasured"]] == [["turn"]], first
-    assert abs(np.dot(first["unmeasured"][0]["turn"], shaft)) > np.cos(np.radians(5.0))
+    kinds = [kind for u in first["unmeasured"] for kind in u]
+    assert "turn" in kinds and set(kinds) <= {"turn", "slide"}, first["unmeasured"]
+    within = {"turn": 5.0, "slide": 10.0}  # degrees (measured: under 1 and 7 where the slide shows)
+    for u in first["unmeasured"]:
+        for kind, axis in u.items():
+            assert abs(np.dot(axis, shaft)) > np.cos(np.radians(within[kind])), first["unmeasured"]
 
     # The first mask on the background: the model's instrument is not there.
     elsewhere = Path(shutil.copytree(second_video, tmp_path / "elsewhere"))
