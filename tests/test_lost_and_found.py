@@ -506,3 +506,41 @@ def test_without_masks_a_region_of_the_first_frames_colours_with_broken_depth_gr
     assert pose is not None
     gt = seq.gt_poses()[frame.id]
     assert np.linalg.norm(pose[:3, 3] - gt[:3, 3]) < 0.01 and rotation_angle_deg(pose[:3, :3].T @ gt[:3, :3]) < 5
+
+
+def test_without_masks_a_relocalisation_whose_mask_looks_unlike_the_instrument_before_is_refused(synth_seq,
+                                                                                                monkeypatch):
+    """Lost without a mask, a pose found again must make a mask that looks as much like the instrument (its colour,
+    `TrackResult.colour`) as the masks of the frames tracked before the loss did, by ``failure.relocalise_colour``
+    of theirs. Here the pose is found on the part of the instrument that keeps its colours while the rest of what
+    the pose covers shows a colour the first frame never did (like a hand of another colour where the pose puts the
+    instrument): refused, the frame stays lost; with the check off it is taken. The frame as it is, re-found at
+    the same pose, is taken with the check on."""
+    seq = open_sequence(synth_seq)
+    cfg = _relocalising_every_frame()
+    frame = seq[4]
+    v, u = np.nonzero(frame.mask & (frame.depth > 0))
+    shaft = np.linalg.eigh(np.cov(np.stack([u, v])))[1][:, -1]
+    along = (u - u.mean()) * shaft[0] + (v - v.mean()) * shaft[1]
+    painted = frame.rgb.copy()
+    far = along > np.quantile(along, 0.3)  # 70 % of the instrument along its shaft
+    painted[v[far], u[far]] = (255, 0, 255)
+
+    def relocalise(rgb: np.ndarray, share: float) -> tuple[str, str, list[float]]:
+        cfg.failure.relocalise_colour = share
+        tracker = SurgTracker(cfg)
+        first = tracker.register(seq[0], seq[0].mask)
+        for i in (1, 2):
+            assert tracker.track(seq[i], None).status != LOST
+        assert tracker.track(seq[3], np.zeros_like(seq[3].mask)).status == LOST
+        true = seq.gt_poses()[frame.id] @ inv_T(inv_T(first) @ seq.gt_poses()[seq.ids[0]])
+        monkeypatch.setattr(tracker, "_candidates", lambda obs, feats, last: [(true, [], 0)])
+        assert 0.4 < tracker.colour.posterior(np.array([[255, 0, 255]], np.uint8))[0] < 0.6  # a colour never seen
+        result = tracker.track(replace(frame, rgb=rgb), None)
+        return result.status, result.reason, list(tracker.colours)
+
+    status, reason, before = relocalise(painted, 0.8)
+    assert len(before) == 2 and min(before) > 0.8
+    assert status == LOST and reason == NO_POSE
+    assert relocalise(painted, 0.0)[0] == RELOCALISED
+    assert relocalise(frame.rgb, 0.8)[0] == RELOCALISED

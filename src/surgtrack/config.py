@@ -126,6 +126,8 @@ class FailureConfig:
     search_max_span: float = 3.0  # no mask while lost: a colour region wider across the view than this many times
     # the model (geometry.span) is not the instrument (0: no bound)
     relocalise_min_iou: float = 0.12  # no mask while lost: least IoU of the model's silhouette with its region
+    relocalise_colour: float = 0.8  # no mask while lost: the mask made at a found pose must score this share of
+    # the colour (TrackResult.colour) the masks of the last tracked frames scored, their median (0: off)
     relocalise_min_ncc: float = 0.2  # appearance: least intensity NCC with a keyframe that sees the frame (-1: off)
     appearance_depth_tol: float = 0.005  # m, a frame's point is seen by a keyframe when its depth agrees this well
     appearance_min_points: int = 100  # fewer points seen by every keyframe: no appearance check

@@ -65,6 +65,7 @@ NO_POSE = "no pose"  # no coarse pose, or no re-localisation candidate passed it
 UNSURE = "unsure"  # fewer than failure.min_confidence of the frame's points lie on the model at the pose
 SEEN_PAST = "seen past"  # the camera sees past the model at the pose (failure.max_seen_past)
 NOT_TRIED = "not tried"  # lost before, no mask, and the search skips this frame (failure.relocalise_every)
+COLOURS_KEPT = 10  # tracked frames whose made masks' colours a re-localisation is held to (`_looks_like_before`)
 
 
 def unseen(mask: np.ndarray, min_pixels: int) -> str:
@@ -224,6 +225,7 @@ class SurgTracker:
         self.pool = MemoryPool(self.cfg.pool)
         self.rng = np.random.default_rng(self.cfg.seed)
         self.recent: deque[_Node] = deque(maxlen=max(self.cfg.graph.adjacent, 1))
+        self.colours: deque[float] = deque(maxlen=COLOURS_KEPT)  # of the last tracked frames' made masks
         self.lost = False
         self.frames_lost = 0
         self._lost_because = ""  # why the loss under way began (the reason of its first frame)
@@ -405,8 +407,11 @@ class SurgTracker:
         if self.cfg.pool.enabled and self.pool.should_add(pose, predicted_area):
             self._add_keyframe(node, obs)
         clock.lap("pool")
+        colour = self._mask_colour(obs)
+        if colour is not None and status == TRACKED:
+            self.colours.append(colour)
         return TrackResult(pose, status, confidence, clock.laps, inliers, node.sdf,
-                           unmeasured=tuple(node.unmeasured), colour=self._mask_colour(obs))
+                           unmeasured=tuple(node.unmeasured), colour=colour)
 
     # -------------------------------------------------------------------------------------------------- stages
 
@@ -494,7 +499,23 @@ class SurgTracker:
             obs, node = self._remasked(best[0], best[1], [])
             best = (obs, node, best[2])
             clock.lap("remask")
+        if not self._looks_like_before(best[0]):
+            return NO_POSE
         return best
+
+    def _looks_like_before(self, obs: Observation) -> bool:
+        """Whether the mask made at a re-localised pose scores at least ``failure.relocalise_colour`` of the colour
+        (`_mask_colour`) that the last tracked frames' made masks scored, their median. A pose found on part of
+        the instrument's colours but lying off it makes a mask of what lies around it, which looks less like the
+        instrument than the masks before the loss did (benchmarks/RESULTS.md, "A re-localisation held to the
+        colour before the loss"). A light that takes the instrument's colours away while it is lost refuses the
+        right pose as well; it also hides the instrument from the colour search that finds its regions.
+        ``failure.relocalise_colour`` 0 turns the check off."""
+        share = self.cfg.failure.relocalise_colour
+        colour = self._mask_colour(obs)
+        if share <= 0 or colour is None or not self.colours:
+            return True
+        return colour >= share * float(np.median(self.colours))
 
     def _last_seen(self) -> np.ndarray:
         """Where the instrument was last seen (camera frame): the median of the last tracked frame's grid points
