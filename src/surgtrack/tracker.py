@@ -464,7 +464,9 @@ class SurgTracker:
         the model always fits. Regions are looked for within the reach without its cap: a region's centroid can lie
         far from the instrument's origin (a long shaft), and the pose found on it is held to the cap anyway. A region
         with too few trusted points is tried grown into the instrument's other colours around it
-        (`masking.grow_region`). When lost: `HIDDEN` if no region had enough trusted points, else `NO_POSE`."""
+        (`masking.grow_region`). The winner, masked again at its pose, must look like the instrument as the frames
+        before the loss did (`_looks_like_before`). When lost: `HIDDEN` if no region had enough trusted points, else
+        `NO_POSE`."""
         f, pre = self.cfg.failure, self.cfg.preprocess
         seen = max(max(k.area for k in self.pool.keyframes), f.min_pixels)
         posterior = colour.posterior(frame.rgb)
@@ -512,10 +514,8 @@ class SurgTracker:
         right pose as well; it also hides the instrument from the colour search that finds its regions.
         ``failure.relocalise_colour`` 0 turns the check off."""
         share = self.cfg.failure.relocalise_colour
-        colour = self._mask_colour(obs)
-        if share <= 0 or colour is None or not self.colours:
-            return True
-        return colour >= share * float(np.median(self.colours))
+        colour = self._mask_colour(obs) if share > 0 and self.colours else None
+        return colour is None or colour >= share * float(np.median(self.colours))
 
     def _last_seen(self) -> np.ndarray:
         """Where the instrument was last seen (camera frame): the median of the last tracked frame's grid points
