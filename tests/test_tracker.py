@@ -459,6 +459,58 @@ def test_a_mostly_hidden_instrument_without_its_mask_does_not_become_a_keyframe(
     assert len(tracker.pool) == (3 if min_area == 0 else 2)
 
 
+@pytest.mark.parametrize("case", ["joins", "moved on", "off"])
+def test_without_masks_a_keyframe_in_new_colours_joins_once_a_later_frame_sees_it_again(synth_seq, case):
+    """Tracked without a mask, a frame whose made mask's colour is under ``pool.keyframe_colour`` of the first ten
+    tracked frames' (here the instrument shows a colour the first frame never did: a handle, or a glove round it)
+    does not join the memory pool at once. ``pool.probation_frames`` later, a tracked frame that sees the points it
+    adds to the model where they were lets it join (the first mask showed three quarters of the instrument, this
+    frame's wider mask the rest; the frames' depth lies on the instrument only); one that sees past them (what the
+    mask took in has moved on: the frame sees the table behind) does not. ``pool.keyframe_colour`` 0: it joins at
+    once."""
+    seq = open_sequence(synth_seq)
+    cfg = TrackerConfig()
+    cfg.sdf.enabled = False
+    cfg.pool.keyframe_rot_deg = 90.0  # no keyframes until the painted frame: the model stays what the first showed
+    cfg.pool.probation_frames = 3
+    cfg.pool.keyframe_colour = 0.0 if case == "off" else 0.85
+    first = seq[0].mask.copy()
+    v, u = np.nonzero(first & (seq[0].depth > 0))
+    shaft = np.linalg.eigh(np.cov(np.stack([u, v])))[1][:, -1]
+    along = (u - u.mean()) * shaft[0] + (v - v.mean()) * shaft[1]
+    far = along > np.quantile(along, 0.75)
+    first[v[far], u[far]] = False
+    tracker = SurgTracker(cfg)
+    tracker.register(seq[0], first)
+    for i in range(1, 11):
+        assert tracker.track(seq[i], None).status == TRACKED
+
+    def instrument_only(frame, rgb=None):  # the frame's depth on the instrument only: no hand or table beside it
+        return replace(frame, rgb=frame.rgb if rgb is None else rgb, depth=np.where(frame.mask, frame.depth, 0))
+
+    later = instrument_only if case == "joins" else (lambda f: f)
+
+    frame = seq[11]
+    painted = frame.rgb.copy()
+    painted[frame.mask] = (255, 0, 255)
+    cfg.pool.keyframe_rot_deg = 0.0
+    cfg.preprocess.predicted_mask_margin = 15  # takes in the rest of the instrument
+    result = tracker.track(instrument_only(frame, painted), None)
+    cfg.pool.keyframe_rot_deg, cfg.preprocess.predicted_mask_margin = 90.0, 4
+    assert result.status == TRACKED and result.colour < 0.85 * np.median(tracker.first_colours)
+    pooled = lambda: frame.id in [k.frame_id for k in tracker.pool.keyframes]  # noqa: E731
+    assert pooled() == (case == "off")
+    if case == "moved on":  # what the mask took in lay 10 % nearer the camera, where the next frames see past
+        node = tracker._probation[0]
+        node.xyz = node.xyz * 0.9
+    for i in (12, 13):
+        assert tracker.track(later(seq[i]), None).status == TRACKED
+        assert pooled() == (case == "off")
+    assert tracker.track(later(seq[14]), None).status == TRACKED
+    assert pooled() == (case in ("joins", "off"))
+    assert tracker._probation is None
+
+
 @pytest.mark.parametrize("gap", [0.02, 0.0])
 def test_without_masks_an_occluder_in_front_of_the_instrument_teaches_the_colour_model(synth_seq, gap):
     """Tracked without a mask, the pixels well in front of the model at the tracked pose (a hand across the

@@ -72,6 +72,9 @@ class PoolConfig:
     min_predicted_area: float = 0.25  # a predicted mask joins the pool only with this fraction of its largest mask
     carve_ratio: float = 0.0  # a model point seen past on more than this share of the frames that saw it leaves
     carve_min_views: int = 5  # ... once that many frames saw it (0 ratio: never; only frames without a given mask)
+    keyframe_colour: float = 0.85  # a keyframe whose made mask's colour is below this of the first tracked frames'
+    probation_frames: int = 20  # ... waits this many frames, then joins if a frame sees its new points where they
+    probation_agree: float = 0.9  # ... were on at least this share of those it sees (0 keyframe_colour: none wait)
 
 
 @dataclass

@@ -66,6 +66,8 @@ UNSURE = "unsure"  # fewer than failure.min_confidence of the frame's points lie
 SEEN_PAST = "seen past"  # the camera sees past the model at the pose (failure.max_seen_past)
 NOT_TRIED = "not tried"  # lost before, no mask, and the search skips this frame (failure.relocalise_every)
 COLOURS_KEPT = 10  # tracked frames whose made masks' colours a re-localisation is held to (`_looks_like_before`)
+NEW_POINT_GAP = 0.004  # m: a keyframe's point this far from the model is new to it (`_probation_ends`)
+PROBATION_MIN_POINTS = 10  # new points, and points seen, that judge a keyframe on probation
 
 
 def unseen(mask: np.ndarray, min_pixels: int) -> str:
@@ -226,6 +228,8 @@ class SurgTracker:
         self.rng = np.random.default_rng(self.cfg.seed)
         self.recent: deque[_Node] = deque(maxlen=max(self.cfg.graph.adjacent, 1))
         self.colours: deque[float] = deque(maxlen=COLOURS_KEPT)  # of the last tracked frames' made masks
+        self.first_colours: list[float] = []  # of the first tracked frames' made masks
+        self._probation: tuple[_Node, Observation, int] | None = None  # a keyframe waiting (`_probation_ends`)
         self.lost = False
         self.frames_lost = 0
         self._lost_because = ""  # why the loss under way began (the reason of its first frame)
@@ -404,12 +408,19 @@ class SurgTracker:
         self.frames_lost = 0
         self.recent.append(node)
         predicted_area = None if obs.mask_given else int(np.count_nonzero(obs.mask))
-        if self.cfg.pool.enabled and self.pool.should_add(pose, predicted_area):
-            self._add_keyframe(node, obs)
-        clock.lap("pool")
         colour = self._mask_colour(obs)
+        if status == TRACKED and self._probation is not None:
+            self._probation_ends(node, obs, frame.index)
+        if self.cfg.pool.enabled and self.pool.should_add(pose, predicted_area):
+            if not self._unlike_first(colour):
+                self._add_keyframe(node, obs)
+            elif self._probation is None:  # one at a time
+                self._probation = (node, obs, frame.index)
+        clock.lap("pool")
         if colour is not None and status == TRACKED:
             self.colours.append(colour)
+            if len(self.first_colours) < COLOURS_KEPT:
+                self.first_colours.append(colour)
         return TrackResult(pose, status, confidence, clock.laps, inliers, node.sdf,
                            unmeasured=tuple(node.unmeasured), colour=colour)
 
@@ -516,6 +527,45 @@ class SurgTracker:
         share = self.cfg.failure.relocalise_colour
         colour = self._mask_colour(obs) if share > 0 and self.colours else None
         return colour is None or colour >= share * float(np.median(self.colours))
+
+    def _unlike_first(self, colour: float | None) -> bool:
+        """Whether a made mask's colour (`_mask_colour`) is below ``pool.keyframe_colour`` of the median the first
+        `COLOURS_KEPT` tracked frames' made masks scored: the mask has taken in something of another colour (a
+        glove round the instrument) or shows a part of it the first frame did not (a handle in a new colour)."""
+        share = self.cfg.pool.keyframe_colour
+        if share <= 0 or colour is None or len(self.first_colours) < COLOURS_KEPT:
+            return False
+        return colour < share * float(np.median(self.first_colours))
+
+    def _probation_ends(self, now: _Node, obs: Observation, index: int) -> None:
+        """A keyframe on probation (`_unlike_first`) joins the pool when, ``pool.probation_frames`` or more frames
+        later, this tracked frame sees its new points (more than `NEW_POINT_GAP` off the model) where they were: at
+        least ``pool.probation_agree`` of those it sees at or past them lie at their depth (``graph.free_space_tol``).
+        A part of the instrument stays where it was on the instrument; a hand that the mask took in moves on, and
+        the frame sees past where it was. With fewer than `PROBATION_MIN_POINTS` new points it leaves (it adds next
+        to nothing, and its pose came from a mask unlike the first ones); with fewer seen it waits, for at most
+        three times ``pool.probation_frames``, then leaves (benchmarks/RESULTS.md, "A keyframe in new colours on
+        probation")."""
+        node, kobs, start = self._probation  # type: ignore[misc]
+        c = self.cfg.pool
+        if index - start < c.probation_frames:
+            return
+        pts = transform(inv_T(node.pose), node.xyz[node.xyz[..., 2] > 0])
+        if self.model_points is not None:
+            gap, _ = self._model_tree.query(pts, distance_upper_bound=NEW_POINT_GAP)
+            pts = pts[~np.isfinite(gap)]
+        uv, z = project(transform(now.pose, pts), obs.K)
+        d, inside = sample(obs.frame.depth, uv)
+        d = np.where(inside & (z > 1e-3), d, 0)
+        tol = self.cfg.graph.free_space_tol
+        at = int(np.count_nonzero((d > 0) & (np.abs(d - z) <= tol)))
+        seen = at + int(np.count_nonzero(d > z + tol))
+        few = len(pts) < PROBATION_MIN_POINTS  # it adds next to nothing to the model
+        if not few and seen < PROBATION_MIN_POINTS and index - start < 3 * c.probation_frames:
+            return
+        self._probation = None
+        if not few and seen >= PROBATION_MIN_POINTS and at >= c.probation_agree * seen:
+            self._add_keyframe(node, kobs)
 
     def _last_seen(self) -> np.ndarray:
         """Where the instrument was last seen (camera frame): the median of the last tracked frame's grid points
