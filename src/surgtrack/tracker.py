@@ -546,7 +546,7 @@ class SurgTracker:
         to nothing, and its pose came from a mask unlike the first ones); with fewer seen it waits, for at most
         three times ``pool.probation_frames``, then leaves (benchmarks/RESULTS.md, "A keyframe in new colours on
         probation")."""
-        node, kobs, start = self._probation  # type: ignore[misc]
+        node, kobs, start = self._probation
         c = self.cfg.pool
         if index - start < c.probation_frames:
             return
