@@ -229,7 +229,7 @@ class SurgTracker:
         self.recent: deque[_Node] = deque(maxlen=max(self.cfg.graph.adjacent, 1))
         self.colours: deque[float] = deque(maxlen=COLOURS_KEPT)  # of the last tracked frames' made masks
         self.first_colours: list[float] = []  # of the first tracked frames' made masks
-        self._probation: tuple[_Node, Observation, int] | None = None  # a keyframe waiting (`_probation_ends`)
+        self._probation: tuple[_Node, Observation] | None = None  # a keyframe waiting (`_probation_ends`)
         self.lost = False
         self.frames_lost = 0
         self._lost_because = ""  # why the loss under way began (the reason of its first frame)
@@ -386,14 +386,18 @@ class SurgTracker:
         if self.lost and mask is None and not self._relocalisation_due():
             return self._lose(clock, NOT_TRIED)
         self._update_sdf()
-        colour = self._colour()
-        if mask is None and self.lost and colour is not None:
-            found = self._search(frame, colour, clock)
+        colour_model = self._colour()
+        searched = mask is None and self.lost and colour_model is not None
+        if searched:
+            found = self._search(frame, colour_model, clock)
         else:
             found = self._located(frame, mask, clock, observed)
         if isinstance(found, str):
             return self._lose(clock, found)
         obs, node, inliers = found
+        colour = self._mask_colour(obs)
+        if searched and not self._looks_like_before(colour):
+            return self._lose(clock, NO_POSE)
         pose = node.pose
         confidence = self._confidence(node)
         if confidence < self._least_confidence(pose):
@@ -408,14 +412,13 @@ class SurgTracker:
         self.frames_lost = 0
         self.recent.append(node)
         predicted_area = None if obs.mask_given else int(np.count_nonzero(obs.mask))
-        colour = self._mask_colour(obs)
         if status == TRACKED and self._probation is not None:
-            self._probation_ends(node, obs, frame.index)
+            self._probation_ends(node, obs)
         if self.cfg.pool.enabled and self.pool.should_add(pose, predicted_area):
             if not self._unlike_first(colour):
                 self._add_keyframe(node, obs)
             elif self._probation is None:  # one at a time
-                self._probation = (node, obs, frame.index)
+                self._probation = (node, obs)
         clock.lap("pool")
         if colour is not None and status == TRACKED:
             self.colours.append(colour)
@@ -475,8 +478,8 @@ class SurgTracker:
         the model always fits. Regions are looked for within the reach without its cap: a region's centroid can lie
         far from the instrument's origin (a long shaft), and the pose found on it is held to the cap anyway. A region
         with too few trusted points is tried grown into the instrument's other colours around it
-        (`masking.grow_region`). The winner, masked again at its pose, must look like the instrument as the frames
-        before the loss did (`_looks_like_before`). When lost: `HIDDEN` if no region had enough trusted points, else
+        (`masking.grow_region`). The winner is masked again at its pose (`track` then holds that mask to the colour
+        before the loss, `_looks_like_before`). When lost: `HIDDEN` if no region had enough trusted points, else
         `NO_POSE`."""
         f, pre = self.cfg.failure, self.cfg.preprocess
         seen = max(max(k.area for k in self.pool.keyframes), f.min_pixels)
@@ -512,21 +515,20 @@ class SurgTracker:
             obs, node = self._remasked(best[0], best[1], [])
             best = (obs, node, best[2])
             clock.lap("remask")
-        if not self._looks_like_before(best[0]):
-            return NO_POSE
         return best
 
-    def _looks_like_before(self, obs: Observation) -> bool:
-        """Whether the mask made at a re-localised pose scores at least ``failure.relocalise_colour`` of the colour
-        (`_mask_colour`) that the last tracked frames' made masks scored, their median. A pose found on part of
-        the instrument's colours but lying off it makes a mask of what lies around it, which looks less like the
-        instrument than the masks before the loss did (benchmarks/RESULTS.md, "A re-localisation held to the
-        colour before the loss"). A light that takes the instrument's colours away while it is lost refuses the
-        right pose as well; it also hides the instrument from the colour search that finds its regions.
-        ``failure.relocalise_colour`` 0 turns the check off."""
+    def _looks_like_before(self, colour: float | None) -> bool:
+        """Whether the mask made at a re-localised pose, its ``colour`` (`_mask_colour`), scores at least
+        ``failure.relocalise_colour`` of the colour that the last tracked frames' made masks scored, their median.
+        A pose found on part of the instrument's colours but lying off it makes a mask of what lies around it, which
+        looks less like the instrument than the masks before the loss did (benchmarks/RESULTS.md, "A
+        re-localisation held to the colour before the loss"). A light that takes the instrument's colours away while
+        it is lost refuses the right pose as well; it also hides the instrument from the colour search that finds
+        its regions. ``failure.relocalise_colour`` 0 turns the check off."""
         share = self.cfg.failure.relocalise_colour
-        colour = self._mask_colour(obs) if share > 0 and self.colours else None
-        return colour is None or colour >= share * float(np.median(self.colours))
+        if share <= 0 or colour is None or not self.colours:
+            return True
+        return colour >= share * float(np.median(self.colours))
 
     def _unlike_first(self, colour: float | None) -> bool:
         """Whether a made mask's colour (`_mask_colour`) is below ``pool.keyframe_colour`` of the median the first
@@ -537,7 +539,7 @@ class SurgTracker:
             return False
         return colour < share * float(np.median(self.first_colours))
 
-    def _probation_ends(self, now: _Node, obs: Observation, index: int) -> None:
+    def _probation_ends(self, now: _Node, obs: Observation) -> None:
         """A keyframe on probation (`_unlike_first`) joins the pool when, ``pool.probation_frames`` or more frames
         later, this tracked frame sees its new points (more than `NEW_POINT_GAP` off the model) where they were: at
         least ``pool.probation_agree`` of those it sees at or past them lie at their depth (``graph.free_space_tol``).
@@ -546,22 +548,16 @@ class SurgTracker:
         to nothing, and its pose came from a mask unlike the first ones); with fewer seen it waits, for at most
         three times ``pool.probation_frames``, then leaves (benchmarks/RESULTS.md, "A keyframe in new colours on
         probation")."""
-        node, kobs, start = self._probation
-        c = self.cfg.pool
-        if index - start < c.probation_frames:
+        node, kobs = self._probation
+        c, waited = self.cfg.pool, now.index - node.index
+        if waited < c.probation_frames:
             return
         pts = transform(inv_T(node.pose), node.xyz[node.xyz[..., 2] > 0])
-        if self.model_points is not None:
-            gap, _ = self._model_tree.query(pts, distance_upper_bound=NEW_POINT_GAP)
-            pts = pts[~np.isfinite(gap)]
-        uv, z = project(transform(now.pose, pts), obs.K)
-        d, inside = sample(obs.frame.depth, uv)
-        d = np.where(inside & (z > 1e-3), d, 0)
-        tol = self.cfg.graph.free_space_tol
-        at = int(np.count_nonzero((d > 0) & (np.abs(d - z) <= tol)))
-        seen = at + int(np.count_nonzero(d > z + tol))
-        few = len(pts) < PROBATION_MIN_POINTS  # it adds next to nothing to the model
-        if not few and seen < PROBATION_MIN_POINTS and index - start < 3 * c.probation_frames:
+        gap, _ = self._model_tree.query(pts, distance_upper_bound=NEW_POINT_GAP)
+        on, past = self._seen(pts[~np.isfinite(gap)], now.pose, obs.frame)
+        at, seen = int(on.sum()), int(on.sum() + past.sum())
+        few = len(on) < PROBATION_MIN_POINTS  # it adds next to nothing to the model
+        if not few and seen < PROBATION_MIN_POINTS and waited < 3 * c.probation_frames:
             return
         self._probation = None
         if not few and seen >= PROBATION_MIN_POINTS and at >= c.probation_agree * seen:
@@ -980,18 +976,24 @@ class SurgTracker:
         c = self.cfg.pool
         if c.carve_ratio <= 0 or self.model_points is None:
             return
-        uv, z = project(transform(pose, self.model_points), frame.K)
-        d, inside = sample(frame.depth, uv)
-        d = np.where(inside & (z > 1e-3), d, 0)
-        tol = self.cfg.graph.free_space_tol
-        past = d > z + tol  # d is 0 where nothing was seen
+        on, past = self._seen(self.model_points, pose, frame)
         self._past += past
-        self._views += past | ((d > 0) & (np.abs(d - z) <= tol))
+        self._views += past | on
         drop = ~self._given & (self._views >= c.carve_min_views) & (self._past > c.carve_ratio * self._views)
         if drop.any():
             keep = ~drop
             self._set_model_points(self.model_points[keep])
             self._past, self._views, self._given = self._past[keep], self._views[keep], self._given[keep]
+
+    def _seen(self, points: np.ndarray, pose: np.ndarray, frame: Frame) -> tuple[np.ndarray, np.ndarray]:
+        """Per object-frame point at ``pose``: whether ``frame`` sees it at its depth (within
+        ``graph.free_space_tol``) and whether it sees more than that past it. Neither where nothing was seen or
+        something lies in front (hidden)."""
+        uv, z = project(transform(pose, points), frame.K)
+        d, inside = sample(frame.depth, uv)
+        d = np.where(inside & (z > 1e-3), d, 0)  # 0: nothing seen
+        tol = self.cfg.graph.free_space_tol
+        return (d > 0) & (np.abs(d - z) <= tol), d > z + tol
 
     def views(self, n: int | None = None) -> list[View]:
         """The keyframes as SDF views at their tracked poses (the bound of a joint refinement holds against these);
