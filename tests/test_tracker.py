@@ -459,6 +459,33 @@ def test_a_mostly_hidden_instrument_without_its_mask_does_not_become_a_keyframe(
     assert len(tracker.pool) == (3 if min_area == 0 else 2)
 
 
+@pytest.mark.parametrize("wide", [12, 0])
+def test_without_masks_an_instrument_that_moved_beyond_the_margin_is_masked_again_wider(synth_seq, wide):
+    """Tracked without a mask, a frame whose mask made at the last pose (its 4-pixel margin) holds too few trusted
+    points, because the instrument moved further since (a fast hand; here four frames dropped, 2.4 cm), is masked
+    again with ``preprocess.predicted_mask_wide_margin`` pixels and tracked; with 0 it is lost."""
+    from surgtrack.metrics import add_errors, model_points
+
+    seq = open_sequence(synth_seq)
+    cfg = TrackerConfig()
+    cfg.sdf.enabled = False
+    cfg.preprocess.predicted_mask_wide_margin = wide
+    tracker = SurgTracker(cfg)
+    first = tracker.register(seq[0], seq[0].mask)
+    for i in range(1, 6):
+        assert tracker.track(seq[i], None).status == TRACKED
+    result = tracker.track(seq[10], None)
+    if wide == 0:
+        assert result.status == LOST and result.reason == HIDDEN
+        return
+    gt = seq.gt_poses()
+    to_truth = np.linalg.inv(first) @ gt[seq.ids[0]]  # the tracker's object frame -> the ground truth's
+    moved = np.linalg.norm(gt[seq.ids[10]][:3, 3] - gt[seq.ids[5]][:3, 3])
+    points = model_points(seq.gt_visible_points(), seq.gt_model())
+    error = add_errors([result.pose @ to_truth], [gt[seq.ids[10]]], points)[0]
+    assert result.status == TRACKED and moved > 0.02 and error < 0.01, (moved, error)
+
+
 @pytest.mark.parametrize("case", ["joins", "moved on", "off"])
 def test_without_masks_a_keyframe_in_new_colours_joins_once_a_later_frame_sees_it_again(synth_seq, case):
     """Tracked without a mask, a frame whose made mask's colour is under ``pool.keyframe_colour`` of the first ten

@@ -443,6 +443,12 @@ class SurgTracker:
             obs = observed.obs
             clock.add(observed.timings)  # made beforehand, in another thread
         clock.lap("preprocess")
+        wide = self.cfg.preprocess.predicted_mask_wide_margin
+        if predicted and obs.n_valid < self.cfg.failure.min_pixels and wide > 0:
+            # the instrument moved further than the margin since the last pose (a fast hand): masked again wider
+            mask = self._predicted_mask(frame, self.recent[-1].pose, wide)
+            obs = preprocess(frame, mask, self.cfg.preprocess, mask_given=False)
+            clock.lap("preprocess")
         if obs.n_valid < self.cfg.failure.min_pixels:
             return unseen(mask, self.cfg.failure.min_pixels)
         feats = self.extractor(obs) if observed is None else observed.features
@@ -1040,12 +1046,14 @@ class SurgTracker:
         depth = frame.depth[box]
         self.colour.add_surroundings(frame.rgb[box], (model > 0) & (depth > 0) & (depth < model - gap))
 
-    def _predicted_mask(self, frame: Frame, pose: np.ndarray) -> np.ndarray:
-        """No mask given: render the keyframes' points at ``pose`` and keep depth-consistent pixels."""
+    def _predicted_mask(self, frame: Frame, pose: np.ndarray, margin: int | None = None) -> np.ndarray:
+        """No mask given: render the keyframes' points at ``pose`` and keep depth-consistent pixels within ``margin``
+        pixels of the rendering (``preprocess.predicted_mask_margin`` unless given)."""
         if self.model_points is None:
             return np.zeros(frame.depth.shape, bool)
         pre = self.cfg.preprocess
-        mask = predict_mask(self.model_points, pose, frame.K, frame.depth, pre.predicted_mask_margin,
+        margin = pre.predicted_mask_margin if margin is None else margin
+        mask = predict_mask(self.model_points, pose, frame.K, frame.depth, margin,
                             pre.predicted_mask_tol, frame.rgb, self._colour(), pre.predicted_mask_colour,
                             pre.predicted_mask_front_tol, inside_posterior=pre.predicted_mask_colour_inside,
                             grow_posterior=pre.predicted_mask_grow, grow_step=pre.predicted_mask_grow_step,
