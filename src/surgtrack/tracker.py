@@ -433,7 +433,8 @@ class SurgTracker:
                  observed: Observed | None = None) -> tuple[Observation, _Node, int] | str:
         """The frame's observation (``observed``'s when given), its node at the tracked pose and the feature inlier
         count: coarse pose (eq. 5) and posture graph (eqs. 7-11) while tracking, re-localisation (step 5) while
-        lost; why not when lost."""
+        lost; why not when lost. Without a mask, one made at the last pose that holds too few trusted points is made
+        again ``preprocess.predicted_mask_wide_margin`` pixels wide before the frame is lost."""
         predicted = mask is None
         if predicted:
             mask = self._predicted_mask(frame, self.recent[-1].pose)
