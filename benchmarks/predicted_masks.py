@@ -59,8 +59,8 @@ def record_masks(tracker: SurgTracker, true_masks: bool = False, lost_on_true: b
     scores: dict[int, tuple[float, float]] = {}
     located, predicted, colour = tracker._located, tracker._predicted_mask, tracker._colour
 
-    def mask_for(frame: Frame, pose: np.ndarray) -> np.ndarray:
-        return frame.mask > 0 if true_masks or (lost_on_true and tracker.lost) else predicted(frame, pose)
+    def mask_for(frame: Frame, pose: np.ndarray, margin: int | None = None) -> np.ndarray:
+        return frame.mask > 0 if true_masks or (lost_on_true and tracker.lost) else predicted(frame, pose, margin)
 
     def on_located(frame: Frame, mask: np.ndarray | None, clock, observed=None):
         lost = tracker.lost
