@@ -15,8 +15,9 @@ on which re-localisation ran counts once, in the first class that fits it:
 - right there: it came out re-localised, wrong, while a right candidate had been refined;
 - taken wrong: it came out re-localised, wrong, no candidate right;
 - lost after: a right winner was taken, then lost by the checks that follow (`unsure`, `seen past`);
-- silhouette: a right candidate won its set, and its silhouette agreement with its region fell below
-  ``failure.relocalise_min_iou``;
+- silhouette: a right candidate won its set, and the frame stayed lost all the same: its silhouette agreement with
+  its region fell below ``failure.relocalise_min_iou``, or, without masks, its made mask's colour below
+  ``failure.relocalise_colour`` of the colour before the loss (`SurgTracker._looks_like_before`);
 - beaten: a right candidate was refined and kept, and a wrong one won its set (fit, then appearance, then motion);
 - appearance: a right candidate was refined and dropped by the appearance check (``failure.relocalise_min_ncc``);
 - refined off: a candidate started right, and refinement moved it off or the reach or fit bound dropped it;
