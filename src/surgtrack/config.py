@@ -14,7 +14,7 @@ class PreprocessConfig:
     bilateral_sigma_space: float = 3.0  # pixels
     mask_erosion: int = 1  # pixels eroded from the instrument mask before lifting points
     predicted_mask_margin: int = 4  # pixels a predicted mask (no mask given) extends beyond the rendered model
-    predicted_mask_wide_margin: int = 12  # pixels, the same mask made again when it held too few points (0: not)
+    predicted_mask_wide_margin: int = 12  # pixels, that mask made again when it held too few points (0: not)
     predicted_mask_tol: float = 0.01  # m a predicted mask's depth may lie outside the model's depth nearby
     predicted_mask_front_tol: float = 0.004  # m in front of the model, unless that loses a fifth of the mask
     predicted_mask_colour: float = 0.1  # min colour posterior of pixels beyond the rendered model (0: off)

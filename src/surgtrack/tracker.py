@@ -434,7 +434,7 @@ class SurgTracker:
         """The frame's observation (``observed``'s when given), its node at the tracked pose and the feature inlier
         count: coarse pose (eq. 5) and posture graph (eqs. 7-11) while tracking, re-localisation (step 5) while
         lost; why not when lost. Without a mask, one made at the last pose that holds too few trusted points is made
-        again ``preprocess.predicted_mask_wide_margin`` pixels wide before the frame is lost."""
+        again ``preprocess.predicted_mask_wide_margin`` pixels wide before the frame is lost (when that is wider)."""
         predicted = mask is None
         if predicted:
             mask = self._predicted_mask(frame, self.recent[-1].pose)
@@ -445,7 +445,7 @@ class SurgTracker:
             clock.add(observed.timings)  # made beforehand, in another thread
         clock.lap("preprocess")
         wide = self.cfg.preprocess.predicted_mask_wide_margin
-        if predicted and obs.n_valid < self.cfg.failure.min_pixels and wide > 0:
+        if predicted and obs.n_valid < self.cfg.failure.min_pixels and wide > self.cfg.preprocess.predicted_mask_margin:
             # the instrument moved further than the margin since the last pose (a fast hand): masked again wider
             mask = self._predicted_mask(frame, self.recent[-1].pose, wide)
             obs = preprocess(frame, mask, self.cfg.preprocess, mask_given=False)
