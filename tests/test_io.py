@@ -255,6 +255,20 @@ def test_empty_first_mask(tmp_path: Path):
         open_sequence(root)
 
 
+def test_inverted_first_mask(tmp_path: Path):
+    """A mask saved inverted (the view around the instrument) is refused; one over most of the image that leaves the
+    corners to the background is an instrument seen close up and is taken."""
+    root = make_sequence(tmp_path / "s")
+    path = root / "masks" / "000000.png"
+    cv2.imwrite(str(path), np.where(frame_arrays(0)[2], 0, 255).astype(np.uint8))
+    with raises(path, "covers 75% of the image and its corners: inverted"):
+        open_sequence(root)
+    close = np.zeros((H, W), np.uint8)
+    close[1:-1, 1:-1] = 255  # 73 % of the image
+    cv2.imwrite(str(path), close)
+    assert open_sequence(root)[0].mask.mean() > 0.7
+
+
 def test_missing_first_mask(tmp_path: Path):
     root = make_sequence(tmp_path / "s", masks="none")
     with raises(root / "masks" / "000000.png", "missing first-frame mask"):

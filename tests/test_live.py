@@ -380,6 +380,9 @@ def test_live_errors_are_one_line(recording: Path, synth_seq: Path, tmp_path: Pa
     small = tmp_path / "small.png"
     cv2.imwrite(str(small), np.full((10, 10), 255, np.uint8))
     assert_one_line_error(cli("live", "--file", recording, "--mask", small, "--no-igtl"), "10x10", "320x240")
+    inverted = tmp_path / "inverted.png"
+    cv2.imwrite(str(inverted), np.where(cv2.imread(str(mask), 0) > 0, 0, 255).astype(np.uint8))
+    assert_one_line_error(cli("live", "--file", recording, "--mask", inverted, "--no-igtl"), "inverted.png", "inverted")
 
 
 def test_live_without_camera_or_file_is_a_one_line_error():

@@ -352,7 +352,7 @@ def live(
     """Track an instrument live from a RealSense camera (or a recording) and stream its pose over OpenIGTLink."""
     import time
 
-    from .io import ResultWriter, read_mask
+    from .io import ResultWriter, check_first_mask, read_mask
     from .realsense import RealSenseError, RealSenseSource, box_mask, parse_box
 
     if (mask is None) == (box is None):
@@ -408,6 +408,11 @@ def live(
                 if first_mask.shape != frame.depth.shape:
                     fail(f"{mask}: mask size {first_mask.shape[1]}x{first_mask.shape[0]} != frame size "
                          f"{frame.depth.shape[1]}x{frame.depth.shape[0]}")
+                if mask is not None:
+                    try:
+                        check_first_mask(mask, first_mask)
+                    except SequenceError as e:
+                        fail(str(e))
                 try:
                     result = tracker.first_result(tracker.register(frame, first_mask))
                 except ValueError as e:

@@ -25,6 +25,7 @@ import numpy as np
 import trimesh
 
 DEPTH_SCALE_MM = 0.001  # metres per depth unit of the DESIGN layout
+INVERTED_MASK_SHARE = 0.5  # a first mask over more of the image than this, three corners or more, is inverted
 T = TypeVar("T")
 
 
@@ -85,6 +86,17 @@ def read_mask(path: Path) -> np.ndarray:
     if m.ndim == 3:
         m = m[..., 0]
     return m > 0
+
+
+def check_first_mask(path: Path, mask: np.ndarray) -> None:
+    """A first-frame mask must mark the instrument: not nothing, and not the view around it (a mask saved
+    inverted, or all 255), which would make the whole scene the instrument."""
+    if not mask.any():
+        raise SequenceError(path, "first-frame mask is empty")
+    share = float(mask.mean())
+    if share > INVERTED_MASK_SHARE and mask[[0, 0, -1, -1], [0, -1, 0, -1]].sum() >= 3:
+        raise SequenceError(path, f"first-frame mask covers {share:.0%} of the image and its corners: inverted? "
+                                  "(instrument pixels must be > 0, the rest 0)")
 
 
 def read_matrix(path: Path, shape: tuple[int, int]) -> np.ndarray:
@@ -182,12 +194,11 @@ class Sequence:
         return frame
 
     def _check_first(self, f0: Frame | None = None) -> None:
-        """Up-front validation: the first frame reads, has sane units and a non-empty mask."""
+        """Up-front validation: the first frame reads, has sane units and a mask that marks the instrument."""
         f0 = self[0] if f0 is None else f0
         if f0.mask is None:
             raise SequenceError(self.mask_path(0), "missing first-frame mask (the first frame needs one)")
-        if not f0.mask.any():
-            raise SequenceError(self.mask_path(0), "first-frame mask is empty")
+        check_first_mask(self.mask_path(0), f0.mask)
 
     def mask_path(self, i: int) -> Path:
         raise NotImplementedError
