@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import pytest
 from helpers import assert_one_line_error, surgtrack
 
@@ -35,6 +37,25 @@ def test_bench_config_errors_are_one_line(tmp_path):
     bad.write_text('{"graph": {"no_such_weight": 1}}')
     assert_one_line_error(surgtrack("bench", "--config", bad, "--out", tmp_path / "b"), "cfg.json", "bad config")
     assert not (tmp_path / "b").exists()  # nothing rendered or run
+
+
+@pytest.mark.parametrize(("text", "problem"), [
+    ('{"graph": {"w_mm": 1}}', "unknown config key 'graph.w_mm'"),
+    ('{"graph": {"w_m": "ten"}}', "graph.w_m must be float, got 'ten'"),
+    ('{"sdf": {"enabled": 1}}', "sdf.enabled must be bool, got 1"),
+    ('{"seed": 1.5}', "seed must be int, got 1.5"),
+    ('{"graph": 3}', "graph must be a JSON object"),
+    ("[1]", "the config must be a JSON object"),
+])
+def test_a_config_setting_of_the_wrong_name_or_type_is_named(text: str, problem: str):
+    with pytest.raises(ValueError, match=problem.replace(".", r"\.")):
+        TrackerConfig.from_dict(json.loads(text))
+
+
+def test_a_config_reads_back_as_written_and_keeps_the_defaults_it_leaves_out():
+    cfg = TrackerConfig.from_dict({"seed": 2, "graph": {"w_m": 3}, "sdf": {"enabled": False}})
+    assert (cfg.seed, cfg.graph.w_m, cfg.sdf.enabled, cfg.pool.K) == (2, 3, False, TrackerConfig().pool.K)
+    assert TrackerConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
 
 
 def test_shorten_scales_occlusion_and_fast_stretches():

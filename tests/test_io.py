@@ -170,7 +170,9 @@ def test_missing_cam_k(tmp_path: Path):
 @pytest.mark.parametrize(
     ("text", "problem"),
     [("1 0 0\n0 1 0\n", "expected a 3x3 matrix, got 2x3"), ("1 0 0 0\n0 1 0 0\n0 0 1 0\n", "got 3x4"),
-     ("a b c\n1 2 3\n4 5 6\n", "not a numeric matrix"), ("1 0 0\n0 nan 0\n0 0 1\n", "NaN")],
+     ("a b c\n1 2 3\n4 5 6\n", "not a numeric matrix"), ("1 0 0\n0 nan 0\n0 0 1\n", "NaN"),
+     ("0 0 8\n0 0 6\n0 0 1\n", r"not a camera matrix .*\(fx 0, fy 0"),  # no focal length
+     ("20 0 0\n0 20 0\n8 6 1\n", r"not a camera matrix .*last row 8 6 1")],  # transposed
 )
 def test_cam_k_not_3x3(tmp_path: Path, text: str, problem: str):
     root = make_sequence(tmp_path / "s")
@@ -325,6 +327,16 @@ def test_result_writer_survives_an_exception(tmp_path: Path):
     assert len((out / "track.jsonl").read_text().splitlines()) == 3
 
 
+def test_results_into_a_file_or_below_one_is_a_one_line_error(tmp_path: Path):
+    taken = tmp_path / "poses.txt"
+    taken.write_text("kept")
+    with raises(taken, "is a file, not a folder"):
+        ResultWriter(taken)
+    with raises(taken / "out", "cannot make the results folder"):
+        ResultWriter(taken / "out")
+    assert taken.read_text() == "kept"
+
+
 def test_the_track_log_reads_back_as_written_and_a_broken_one_names_its_line(tmp_path: Path):
     out = tmp_path / "out"
     with ResultWriter(out) as w:
@@ -429,6 +441,9 @@ def test_bop_scene_errors(tmp_path: Path):
         open_sequence(scene, obj_id=5)
     (scene / "scene_camera.json").write_text(json.dumps({"0": {"cam_K": [1, 2, 3]}}))
     with raises(scene / "scene_camera.json", "frame 0: cam_K missing or not 3x3"):
+        open_sequence(scene, obj_id=5)
+    (scene / "scene_camera.json").write_text(json.dumps({"0": {"cam_K": [20, 0, 8, 0, -20, 6, 0, 0, 1]}}))
+    with raises(scene / "scene_camera.json", r"frame 0: cam_K not a camera matrix .*fy -20"):
         open_sequence(scene, obj_id=5)
 
 

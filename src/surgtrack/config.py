@@ -201,18 +201,35 @@ class TrackerConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> TrackerConfig:
-        kinds = {f.name: f.type for f in fields(cls)}
-        sections = {
-            "preprocess": PreprocessConfig,
-            "ransac": RansacConfig,
-            "pool": PoolConfig,
-            "graph": GraphConfig,
-            "failure": FailureConfig,
-            "sdf": SDFConfig,
-        }
+        """The config a JSON object of the `to_dict` layout gives, defaults for what it leaves out; a key that is
+        not a setting, or a value of another type, raises ValueError naming it (``"graph.w_m"``)."""
+        sections = {f.name: f.default_factory for f in fields(cls) if f.type.endswith("Config")}
         kw = {}
-        for k, v in d.items():
-            if k not in kinds:
-                raise ValueError(f"unknown config key {k!r}")
-            kw[k] = sections[k](**v) if k in sections else v
+        for k, v in _settings(d, "the config").items():
+            if k in sections:
+                section = sections[k]()  # type: ignore[misc]
+                kw[k] = type(section)(**_checked(section, _settings(v, k), f"{k}."))
+            else:
+                kw.update(_checked(cls(), {k: v}, ""))
         return cls(**kw)
+
+
+_TYPES = {"bool": (bool,), "int": (int,), "float": (int, float), "str": (str,)}
+
+
+def _settings(d: object, name: str) -> dict:
+    if not isinstance(d, dict):
+        raise ValueError(f"{name} must be a JSON object of settings, got {type(d).__name__}")
+    return d
+
+
+def _checked(defaults: object, d: dict, prefix: str) -> dict:
+    """``d`` when each of its keys is a field of ``defaults``' dataclass with a value of the field's type."""
+    kinds = {f.name: f.type for f in fields(defaults)}  # type: ignore[arg-type]
+    for k, v in d.items():
+        if k not in kinds:
+            raise ValueError(f"unknown config key {prefix + k!r}")
+        types = _TYPES.get(str(kinds[k]))
+        if types is not None and (not isinstance(v, types) or (isinstance(v, bool) and bool not in types)):
+            raise ValueError(f"{prefix}{k} must be {kinds[k]}, got {v!r}")
+    return d

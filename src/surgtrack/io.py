@@ -114,6 +114,15 @@ def read_matrix(path: Path, shape: tuple[int, int]) -> np.ndarray:
     return M
 
 
+def check_intrinsics(path: Path, K: np.ndarray, where: str = "") -> np.ndarray:
+    """``K`` when it is a pinhole camera matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0 (a
+    transposed one puts cx, cy in its last row); ``where`` names the entry in a file of several."""
+    if not (K[0, 0] > 0 and K[1, 1] > 0 and K[1, 0] == 0 and np.allclose(K[2], [0.0, 0.0, 1.0])):
+        raise SequenceError(path, f"{where}not a camera matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0 "
+                                  f"(fx {K[0, 0]:g}, fy {K[1, 1]:g}, last row {' '.join(f'{v:g}' for v in K[2])})")
+    return K
+
+
 def check_depth_units(path: Path, depth: np.ndarray, depth_scale: float) -> None:
     """Catch depth in the wrong units: a median under 10 raw units means metres were written as integers."""
     valid = depth[depth > 0]
@@ -228,7 +237,7 @@ class FolderSequence(Sequence):
         if not self.root.is_dir():
             raise SequenceError(self.root, "sequence folder does not exist")
         self.depth_scale = depth_scale
-        self.K = read_matrix(self.root / "cam_K.txt", (3, 3))
+        self.K = check_intrinsics(self.root / "cam_K.txt", read_matrix(self.root / "cam_K.txt", (3, 3)))
         rgb = _numbered(self.root / "rgb", r"(\d+)\.(?:png|jpg)")
         if not rgb:
             raise SequenceError(self.root / "rgb", "no frames (expected rgb/000000.png ...)")
@@ -286,6 +295,8 @@ class BopScene(Sequence):
         for n, cam in zip(numbers, self._cams, strict=True):
             if np.asarray(cam.get("cam_K", []), dtype=np.float64).size != 9:
                 raise SequenceError(self.root / "scene_camera.json", f"frame {n}: cam_K missing or not 3x3")
+            check_intrinsics(self.root / "scene_camera.json", np.asarray(cam["cam_K"], np.float64).reshape(3, 3),
+                             f"frame {n}: cam_K ")
         self.K = np.asarray(self._cams[0]["cam_K"], dtype=np.float64).reshape(3, 3)
         self._gts = [gts.get(str(n), []) for n in numbers]
         if obj_id is None and self._gts[0]:
@@ -519,8 +530,12 @@ class ResultWriter:
 
     def __init__(self, out: Path | str, config: dict | None = None):
         self.out = Path(out)
-        self.out.mkdir(parents=True, exist_ok=True)
-        (self.out / "ob_in_cam").mkdir(exist_ok=True)
+        if self.out.exists() and not self.out.is_dir():
+            raise SequenceError(self.out, "is a file, not a folder for the results")
+        try:
+            (self.out / "ob_in_cam").mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise SequenceError(self.out, f"cannot make the results folder ({e.strerror})") from None
         # A new run replaces an earlier run's result in the same folder, so no stale pose or mesh mixes in.
         for stale in [*(self.out / "ob_in_cam").glob("*.txt"), self.out / "mesh.ply"]:
             stale.unlink(missing_ok=True)
