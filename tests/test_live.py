@@ -14,6 +14,7 @@ import numpy as np
 import pyigtl
 import pytest
 from click.testing import Result
+from helpers import assert_one_line_error as one_line_error
 from helpers import surgtrack
 from typer.testing import CliRunner
 
@@ -391,6 +392,17 @@ def test_live_without_camera_or_file_is_a_one_line_error():
     if len(rs.context().query_devices()):
         pytest.skip("a RealSense camera is connected")
     assert_one_line_error(cli("live", "--box", "0,0,10,10", "--no-igtl"), "no RealSense camera")
+
+
+def test_track_and_synth_refuse_a_bad_scale_or_a_file_for_a_folder_in_one_line(synth_seq: Path, tmp_path: Path):
+    taken = tmp_path / "taken.txt"
+    taken.write_text("kept")
+    for args, fragments in [(("track", synth_seq, "--out", tmp_path / "o", "--depth-scale", "0"),
+                             ("--depth-scale must be positive",)),
+                            (("track", synth_seq, "--out", taken), ("taken.txt", "is a file, not a folder")),
+                            (("synth", taken, "--frames", "2"), ("taken.txt", "is a file, not a folder"))]:
+        one_line_error(surgtrack(*args), *fragments)
+    assert taken.read_text() == "kept" and not (tmp_path / "o").exists()
 
 
 def test_track_switches_override_the_config_file_and_only_when_given(synth_seq: Path, tmp_path: Path):

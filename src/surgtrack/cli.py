@@ -205,6 +205,8 @@ def track(
     from .pipeline import track_sequence
     from .tracker import SurgTracker
 
+    if not depth_scale > 0:
+        fail(f"--depth-scale must be positive, got {depth_scale}")
     cfg = load_config(config, **{"ransac.features": features, "pool.enabled": False if no_memory_pool else None,
                                  "graph.enabled": False if no_graph else None,
                                  "sdf.occ_surf": False if no_occ_surf else None})

@@ -570,8 +570,11 @@ class SequenceWriter:
 
     def __init__(self, root: Path | str, K: np.ndarray):
         self.root = Path(root)
-        for sub in ("rgb", "depth", "masks", "gt/ob_in_cam"):
-            (self.root / sub).mkdir(parents=True, exist_ok=True)
+        try:
+            for sub in ("rgb", "depth", "masks", "gt/ob_in_cam"):
+                (self.root / sub).mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise SequenceError(self.root, f"cannot make the sequence folder ({e.strerror})") from None
         np.savetxt(self.root / "cam_K.txt", K, fmt="%.10g")
 
     def write_frame(

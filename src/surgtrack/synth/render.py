@@ -282,6 +282,8 @@ def _cover_schedule(spec: SynthSpec) -> np.ndarray:
 
 def _prepare_out(out: Path) -> None:
     """Create the folder; clear an earlier synthetic render there, refuse to write over anything else."""
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"{out}: is a file, not a folder for the sequence")
     if out.exists() and any(out.iterdir()):
         if not (out / "synth.json").exists() and not (out / "rgb").is_dir():
             raise FileExistsError(f"{out}: folder is not empty and holds no synthetic sequence; not overwriting")
@@ -290,7 +292,10 @@ def _prepare_out(out: Path) -> None:
                 shutil.rmtree(out / sub)
         for f in ("synth.json", "preview.png", "cam_K.txt"):
             (out / f).unlink(missing_ok=True)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise FileExistsError(f"{out}: cannot make the sequence folder ({e.strerror})") from None
 
 
 def render_sequence(spec: SynthSpec, out: Path | str, progress: Callable[[int, int], None] | None = None) -> Path:
