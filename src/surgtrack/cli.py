@@ -167,6 +167,7 @@ def load_config(path: Path | None, **overrides: object):
     import json
 
     from .config import TrackerConfig
+    from .features import KINDS
 
     cfg = TrackerConfig()
     if path is not None:
@@ -179,6 +180,9 @@ def load_config(path: Path | None, **overrides: object):
             continue
         section, name = key.split(".")
         setattr(getattr(cfg, section), name, value)
+    if cfg.ransac.features not in KINDS:
+        given = "--features" if overrides.get("ransac.features") is not None else f"{path}: ransac.features"
+        fail(f"{given}: unknown feature type {cfg.ransac.features!r} ({', '.join(KINDS)})")
     return cfg
 
 

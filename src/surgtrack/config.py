@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import MISSING, asdict, dataclass, field, fields
 
 
 @dataclass
@@ -203,7 +203,7 @@ class TrackerConfig:
     def from_dict(cls, d: dict) -> TrackerConfig:
         """The config a JSON object of the `to_dict` layout gives, defaults for what it leaves out; a key that is
         not a setting, or a value of another type, raises ValueError naming it (``"graph.w_m"``)."""
-        sections = {f.name: f.default_factory for f in fields(cls) if f.type.endswith("Config")}
+        sections = {f.name: f.default_factory for f in fields(cls) if f.default_factory is not MISSING}
         kw = {}
         for k, v in _settings(d, "the config").items():
             if k in sections:
@@ -229,7 +229,8 @@ def _checked(defaults: object, d: dict, prefix: str) -> dict:
     for k, v in d.items():
         if k not in kinds:
             raise ValueError(f"unknown config key {prefix + k!r}")
-        types = _TYPES.get(str(kinds[k]))
+        kind = kinds[k] if isinstance(kinds[k], str) else kinds[k].__name__
+        types = _TYPES.get(kind)
         if types is not None and (not isinstance(v, types) or (isinstance(v, bool) and bool not in types)):
-            raise ValueError(f"{prefix}{k} must be {kinds[k]}, got {v!r}")
+            raise ValueError(f"{prefix}{k} must be {kind}, got {v!r}")
     return d

@@ -49,6 +49,9 @@ class _Detection:
         return frame is self.frame and box == self.box and (whole_crop or not (on & ~self.on).any())
 
 
+KINDS = ("sift", "orb", "xfeat")  # the detectors a FeatureExtractor makes
+
+
 class FeatureExtractor:
     """Detect and describe keypoints inside the instrument mask, keep those with trusted depth."""
 
@@ -67,7 +70,7 @@ class FeatureExtractor:
             self._xfeat = _load_xfeat(max_keypoints)
             self.norm = cv2.NORM_L2
         else:
-            raise ValueError(f"unknown feature type {kind!r} (sift, orb, xfeat)")
+            raise ValueError(f"unknown feature type {kind!r} ({', '.join(KINDS)})")
         self._last: _Detection | None = None  # SIFT's and XFeat's last detection
 
     def __call__(self, obs: Observation) -> Features:

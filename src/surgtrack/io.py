@@ -117,7 +117,7 @@ def read_matrix(path: Path, shape: tuple[int, int]) -> np.ndarray:
 def check_intrinsics(path: Path, K: np.ndarray, where: str = "") -> np.ndarray:
     """``K`` when it is a pinhole camera matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0 (a
     transposed one puts cx, cy in its last row); ``where`` names the entry in a file of several."""
-    if not (K[0, 0] > 0 and K[1, 1] > 0 and K[1, 0] == 0 and np.allclose(K[2], [0.0, 0.0, 1.0])):
+    if not (K[0, 0] > 0 and K[1, 1] > 0 and abs(K[1, 0]) <= 1e-6 * K[1, 1] and np.allclose(K[2], [0.0, 0.0, 1.0])):
         raise SequenceError(path, f"{where}not a camera matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0 "
                                   f"(fx {K[0, 0]:g}, fy {K[1, 1]:g}, last row {' '.join(f'{v:g}' for v in K[2])})")
     return K
