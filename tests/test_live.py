@@ -394,7 +394,7 @@ def test_live_without_camera_or_file_is_a_one_line_error():
     assert_one_line_error(cli("live", "--box", "0,0,10,10", "--no-igtl"), "no RealSense camera")
 
 
-def test_track_and_synth_refuse_bad_switches_or_a_file_for_a_folder_in_one_line(synth_seq: Path, tmp_path: Path):
+def test_commands_refuse_bad_switches_or_a_file_for_a_folder_in_one_line(synth_seq: Path, tmp_path: Path):
     taken = tmp_path / "taken.txt"
     taken.write_text("kept")
     for args, fragments in [(("track", synth_seq, "--out", tmp_path / "o", "--depth-scale", "0"),
@@ -402,7 +402,10 @@ def test_track_and_synth_refuse_bad_switches_or_a_file_for_a_folder_in_one_line(
                             (("track", synth_seq, "--out", taken), ("taken.txt", "is a file, not a folder")),
                             (("track", synth_seq, "--out", tmp_path / "o", "--features", "surf"),
                              ("--features", "unknown feature type 'surf'")),
-                            (("synth", taken, "--frames", "2"), ("taken.txt", "is a file, not a folder"))]:
+                            (("synth", taken, "--frames", "2"), ("taken.txt", "is a file, not a folder")),
+                            (("demo", "--out", taken), ("taken.txt", "is a file, not a folder")),
+                            (("bench", "--suite", "instrument3d", "--short", "--out", taken),
+                             ("taken.txt", "is a file, not a folder"))]:
         one_line_error(surgtrack(*args), *fragments)
     assert taken.read_text() == "kept" and not (tmp_path / "o").exists()
 

@@ -161,6 +161,13 @@ def eval_cmd(
     typer.echo(f"wrote {out / 'metrics.json'}")
 
 
+def output_folder(out: Path) -> Path:
+    """``out`` unless it is a file: the results of a command go into a folder."""
+    if out.exists() and not out.is_dir():
+        fail(f"{out}: is a file, not a folder for the results")
+    return out
+
+
 def load_config(path: Path | None, **overrides: object):
     """Tracker config from an optional JSON file (TrackerConfig.to_dict layout), then the command-line switches
     that were given (None: not given)."""
@@ -480,7 +487,7 @@ def bench(
     if frames is not None and frames < 1:
         fail(f"--frames must be at least 1, got {frames}")
     cfg = load_config(config) if config is not None else None
-    results = run_bench(suite, names, out, short, frames, first_mask_only, log=typer.echo, config=cfg)
+    results = run_bench(suite, names, output_folder(out), short, frames, first_mask_only, log=typer.echo, config=cfg)
     typer.echo(format_table(results))
 
 
@@ -497,6 +504,7 @@ def demo(
 
     from .demo import DEMO_SPEC, run_demo
 
+    output_folder(out)
     with Progress(TextColumn("{task.description:>8}"), BarColumn(), MofNCompleteColumn()) as progress:
         tasks: dict[str, int] = {}
 
