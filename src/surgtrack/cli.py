@@ -162,9 +162,13 @@ def eval_cmd(
 
 
 def output_folder(out: Path) -> Path:
-    """``out`` unless it is a file: the results of a command go into a folder."""
+    """``out``, made when missing; a file there, or one above it, stops the command: its results go into a folder."""
     if out.exists() and not out.is_dir():
         fail(f"{out}: is a file, not a folder for the results")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        fail(f"{out}: cannot make the results folder ({e.strerror})")
     return out
 
 
