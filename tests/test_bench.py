@@ -44,6 +44,7 @@ def test_bench_config_errors_are_one_line(tmp_path):
     ('{"graph": {"w_m": "ten"}}', "graph.w_m must be float, got 'ten'"),
     ('{"sdf": {"enabled": 1}}', "sdf.enabled must be bool, got 1"),
     ('{"seed": 1.5}', "seed must be int, got 1.5"),
+    ('{"preprocess": {"predicted_mask_margin": -3}}', "preprocess.predicted_mask_margin must be at least 0, got -3"),
     ('{"graph": 3}', "graph must be a JSON object"),
     ("[1]", "the config must be a JSON object"),
 ])
@@ -53,7 +54,8 @@ def test_a_config_setting_of_the_wrong_name_or_type_is_named(text: str, problem:
 
 
 def test_a_config_reads_back_as_written_and_keeps_the_defaults_it_leaves_out():
-    cfg = TrackerConfig.from_dict({"seed": 2, "graph": {"w_m": 3}, "sdf": {"enabled": False}})
+    cfg = TrackerConfig.from_dict({"seed": 2, "graph": {"w_m": 3}, "sdf": {"enabled": False},
+                                   "failure": {"relocalise_min_ncc": -1}})  # -1: the appearance check off
     assert (cfg.seed, cfg.graph.w_m, cfg.sdf.enabled, cfg.pool.K) == (2, 3, False, TrackerConfig().pool.K)
     assert TrackerConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
 

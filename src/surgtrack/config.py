@@ -202,7 +202,7 @@ class TrackerConfig:
     @classmethod
     def from_dict(cls, d: dict) -> TrackerConfig:
         """The config a JSON object of the `to_dict` layout gives, defaults for what it leaves out; a key that is
-        not a setting, or a value of another type, raises ValueError naming it (``"graph.w_m"``)."""
+        not a setting, a value of another type or a negative number raises ValueError naming it (``"graph.w_m"``)."""
         sections = {f.name: f.default_factory for f in fields(cls) if f.default_factory is not MISSING}
         kw = {}
         for k, v in _settings(d, "the config").items():
@@ -215,6 +215,7 @@ class TrackerConfig:
 
 
 _TYPES = {"bool": (bool,), "int": (int,), "float": (int, float), "str": (str,)}
+_LEAST = {"relocalise_min_ncc": -1.0}  # every other number is a count, size, weight or share: none below 0
 
 
 def _settings(d: object, name: str) -> dict:
@@ -233,4 +234,7 @@ def _checked(defaults: object, d: dict, prefix: str) -> dict:
         types = _TYPES.get(kind)
         if types is not None and (not isinstance(v, types) or (isinstance(v, bool) and bool not in types)):
             raise ValueError(f"{prefix}{k} must be {kind}, got {v!r}")
+        least = _LEAST.get(k, 0.0)
+        if kind in ("int", "float") and not v >= least:
+            raise ValueError(f"{prefix}{k} must be at least {least:g}, got {v!r}")
     return d
