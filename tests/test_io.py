@@ -332,7 +332,7 @@ def test_results_into_a_file_or_below_one_is_a_one_line_error(tmp_path: Path):
     taken.write_text("kept")
     with raises(taken, "is a file, not a folder"):
         ResultWriter(taken)
-    with raises(taken / "out", "cannot make the results folder"):
+    with raises(taken / "out", "cannot make the folder"):
         ResultWriter(taken / "out")
     assert taken.read_text() == "kept"
 

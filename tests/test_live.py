@@ -404,7 +404,7 @@ def test_commands_refuse_bad_switches_or_a_file_for_a_folder_in_one_line(synth_s
                              ("--features", "unknown feature type 'surf'")),
                             (("synth", taken, "--frames", "2"), ("taken.txt", "is a file, not a folder")),
                             (("demo", "--out", taken), ("taken.txt", "is a file, not a folder")),
-                            (("demo", "--out", taken / "demo"), ("taken.txt/demo", "cannot make the results folder")),
+                            (("demo", "--out", taken / "demo"), ("taken.txt/demo", "cannot make the folder")),
                             (("bench", "--suite", "instrument3d", "--short", "--out", taken),
                              ("taken.txt", "is a file, not a folder"))]:
         one_line_error(surgtrack(*args), *fragments)

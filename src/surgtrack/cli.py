@@ -135,8 +135,7 @@ def eval_cmd(
     from .io import open_sequence, write_text_atomic
     from .metrics import WRONG_ERR, evaluate
 
-    if not depth_scale > 0:
-        fail(f"--depth-scale must be positive, got {depth_scale}")
+    positive_depth_scale(depth_scale)
     result = evaluate(out, open_sequence(seq, depth_scale=depth_scale, obj_id=obj_id))
     write_text_atomic(out / "metrics.json", json.dumps(result, indent=1) + "\n")
     table = Table(title=f"{out.name} vs {seq.name}")
@@ -161,15 +160,10 @@ def eval_cmd(
     typer.echo(f"wrote {out / 'metrics.json'}")
 
 
-def output_folder(out: Path) -> Path:
-    """``out``, made when missing; a file there, or one above it, stops the command: its results go into a folder."""
-    if out.exists() and not out.is_dir():
-        fail(f"{out}: is a file, not a folder for the results")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        fail(f"{out}: cannot make the results folder ({e.strerror})")
-    return out
+def positive_depth_scale(depth_scale: float) -> None:
+    """Stop on a --depth-scale of 0 or less (every depth would read as invalid or behind the camera)."""
+    if not depth_scale > 0:
+        fail(f"--depth-scale must be positive, got {depth_scale}")
 
 
 def load_config(path: Path | None, **overrides: object):
@@ -220,8 +214,7 @@ def track(
     from .pipeline import track_sequence
     from .tracker import SurgTracker
 
-    if not depth_scale > 0:
-        fail(f"--depth-scale must be positive, got {depth_scale}")
+    positive_depth_scale(depth_scale)
     cfg = load_config(config, **{"ransac.features": features, "pool.enabled": False if no_memory_pool else None,
                                  "graph.enabled": False if no_graph else None,
                                  "sdf.occ_surf": False if no_occ_surf else None})
@@ -278,8 +271,7 @@ def register(
     from .pipeline import track_sequence
     from .tracker import SurgTracker
 
-    if not depth_scale > 0:
-        fail(f"--depth-scale must be positive, got {depth_scale}")
+    positive_depth_scale(depth_scale)
     if out.is_dir():
         fail(f"{out}: is a folder; --out names the model file to write (NAME.stm)")
     cfg = load_config(config)
@@ -483,6 +475,7 @@ def bench(
 ) -> None:
     """Run methods over a synthetic suite, evaluate, and print the paper-style table (writes bench.json/.md)."""
     from .bench import METHODS, format_table, run_bench
+    from .io import make_folder
 
     names = [m.strip() for m in methods.split(",") if m.strip()]
     for m in names:
@@ -491,7 +484,7 @@ def bench(
     if frames is not None and frames < 1:
         fail(f"--frames must be at least 1, got {frames}")
     cfg = load_config(config) if config is not None else None
-    results = run_bench(suite, names, output_folder(out), short, frames, first_mask_only, log=typer.echo, config=cfg)
+    results = run_bench(suite, names, make_folder(out), short, frames, first_mask_only, log=typer.echo, config=cfg)
     typer.echo(format_table(results))
 
 
@@ -507,8 +500,9 @@ def demo(
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 
     from .demo import DEMO_SPEC, run_demo
+    from .io import make_folder
 
-    output_folder(out)
+    make_folder(out)
     with Progress(TextColumn("{task.description:>8}"), BarColumn(), MofNCompleteColumn()) as progress:
         tasks: dict[str, int] = {}
 

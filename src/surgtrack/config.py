@@ -205,12 +205,8 @@ class TrackerConfig:
         not a setting, a value of another type or a negative number raises ValueError naming it (``"graph.w_m"``)."""
         sections = {f.name: f.default_factory for f in fields(cls) if f.default_factory is not MISSING}
         kw = {}
-        for k, v in _settings(d, "the config").items():
-            if k in sections:
-                section = sections[k]()  # type: ignore[misc]
-                kw[k] = type(section)(**_checked(section, _settings(v, k), f"{k}."))
-            else:
-                kw.update(_checked(cls(), {k: v}, ""))
+        for k, v in _checked(cls, _settings(d, "the config"), "").items():
+            kw[k] = sections[k](**_checked(sections[k], _settings(v, k), f"{k}.")) if k in sections else v
         return cls(**kw)
 
 
@@ -224,9 +220,10 @@ def _settings(d: object, name: str) -> dict:
     return d
 
 
-def _checked(defaults: object, d: dict, prefix: str) -> dict:
-    """``d`` when each of its keys is a field of ``defaults``' dataclass with a value of the field's type."""
-    kinds = {f.name: f.type for f in fields(defaults)}  # type: ignore[arg-type]
+def _checked(holder: type, d: dict, prefix: str) -> dict:
+    """``d`` when each of its keys is a field of the dataclass ``holder`` with a value of the field's type (a
+    section's value is checked by its own call)."""
+    kinds = {f.name: f.type for f in fields(holder)}
     for k, v in d.items():
         if k not in kinds:
             raise ValueError(f"unknown config key {prefix + k!r}")

@@ -99,6 +99,17 @@ def check_first_mask(path: Path, mask: np.ndarray) -> None:
                                   "(instrument pixels must be > 0, the rest 0)")
 
 
+def make_folder(path: Path) -> Path:
+    """``path`` as a folder, made with its parents when missing; a file there or above it raises SequenceError."""
+    if path.exists() and not path.is_dir():
+        raise SequenceError(path, "is a file, not a folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise SequenceError(path, f"cannot make the folder ({e.strerror})") from None
+    return path
+
+
 def read_matrix(path: Path, shape: tuple[int, int]) -> np.ndarray:
     """Read a whitespace-separated matrix of the given shape (e.g. cam_K.txt, a 4x4 pose)."""
     if not path.is_file():
@@ -529,13 +540,8 @@ class ResultWriter:
     frame is tracked, OUT/track.jsonl and OUT/mesh.ply."""
 
     def __init__(self, out: Path | str, config: dict | None = None):
-        self.out = Path(out)
-        if self.out.exists() and not self.out.is_dir():
-            raise SequenceError(self.out, "is a file, not a folder for the results")
-        try:
-            (self.out / "ob_in_cam").mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            raise SequenceError(self.out, f"cannot make the results folder ({e.strerror})") from None
+        self.out = make_folder(Path(out))
+        (self.out / "ob_in_cam").mkdir(exist_ok=True)
         # A new run replaces an earlier run's result in the same folder, so no stale pose or mesh mixes in.
         for stale in [*(self.out / "ob_in_cam").glob("*.txt"), self.out / "mesh.ply"]:
             stale.unlink(missing_ok=True)
@@ -569,12 +575,9 @@ class SequenceWriter:
     """Writes a sequence in the DESIGN.md layout (used by the synthesiser and converters)."""
 
     def __init__(self, root: Path | str, K: np.ndarray):
-        self.root = Path(root)
-        try:
-            for sub in ("rgb", "depth", "masks", "gt/ob_in_cam"):
-                (self.root / sub).mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            raise SequenceError(self.root, f"cannot make the sequence folder ({e.strerror})") from None
+        self.root = make_folder(Path(root))
+        for sub in ("rgb", "depth", "masks", "gt/ob_in_cam"):
+            (self.root / sub).mkdir(parents=True, exist_ok=True)
         np.savetxt(self.root / "cam_K.txt", K, fmt="%.10g")
 
     def write_frame(

@@ -20,7 +20,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from ..geometry import inv_T, project, transform
-from ..io import SequenceWriter
+from ..io import SequenceWriter, make_folder
 from .instruments import Instrument, Material, load_instrument
 from .motion import time_warp, trajectory
 from .scene import (
@@ -282,9 +282,7 @@ def _cover_schedule(spec: SynthSpec) -> np.ndarray:
 
 def _prepare_out(out: Path) -> None:
     """Create the folder; clear an earlier synthetic render there, refuse to write over anything else."""
-    if out.exists() and not out.is_dir():
-        raise FileExistsError(f"{out}: is a file, not a folder for the sequence")
-    if out.exists() and any(out.iterdir()):
+    if any(make_folder(out).iterdir()):
         if not (out / "synth.json").exists() and not (out / "rgb").is_dir():
             raise FileExistsError(f"{out}: folder is not empty and holds no synthetic sequence; not overwriting")
         for sub in ("rgb", "depth", "masks", "gt"):
@@ -292,10 +290,6 @@ def _prepare_out(out: Path) -> None:
                 shutil.rmtree(out / sub)
         for f in ("synth.json", "preview.png", "cam_K.txt"):
             (out / f).unlink(missing_ok=True)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise FileExistsError(f"{out}: cannot make the sequence folder ({e.strerror})") from None
 
 
 def render_sequence(spec: SynthSpec, out: Path | str, progress: Callable[[int, int], None] | None = None) -> Path:
