@@ -45,6 +45,8 @@ def test_bench_config_errors_are_one_line(tmp_path):
     ('{"sdf": {"enabled": 1}}', "sdf.enabled must be bool, got 1"),
     ('{"seed": 1.5}', "seed must be int, got 1.5"),
     ('{"preprocess": {"predicted_mask_margin": -3}}', "preprocess.predicted_mask_margin must be at least 0, got -3"),
+    ('{"graph": {"huber_delta": 0}}', "graph.huber_delta must be above 0, got 0"),  # before: a LinAlgError
+    ('{"sdf": {"refit_every": 0}}', "sdf.refit_every must be above 0, got 0"),  # before: a ZeroDivisionError
     ('{"graph": 3}', "graph must be a JSON object"),
     ("[1]", "the config must be a JSON object"),
 ])

@@ -202,7 +202,8 @@ class TrackerConfig:
     @classmethod
     def from_dict(cls, d: dict) -> TrackerConfig:
         """The config a JSON object of the `to_dict` layout gives, defaults for what it leaves out; a key that is
-        not a setting, a value of another type or a negative number raises ValueError naming it (``"graph.w_m"``)."""
+        not a setting, a value of another type, a negative number or 0 where a size must be positive raises ValueError
+        naming it (``"graph.w_m"``)."""
         sections = {f.name: f.default_factory for f in fields(cls) if f.default_factory is not MISSING}
         kw = {}
         for k, v in _checked(cls, _settings(d, "the config"), "").items():
@@ -212,6 +213,11 @@ class TrackerConfig:
 
 _TYPES = {"bool": (bool,), "int": (int,), "float": (int, float), "str": (str,)}
 _LEAST = {"relocalise_min_ncc": -1.0}  # every other number is a count, size, weight or share: none below 0
+# Sizes, counts and scales that 0 would break (a division, an empty histogram or sample, no point kept): above 0.
+_POSITIVE = {"preprocess.bilateral_sigma_depth", "preprocess.colour_bins", "preprocess.normal_step",
+             "preprocess.max_grazing_deg", "preprocess.max_depth", "pool.max_size", "graph.huber_delta",
+             "graph.prior_lever", "sdf.voxel_size", "sdf.truncation", "sdf.batch_rays", "sdf.samples_per_ray",
+             "sdf.refit_every"}
 
 
 def _settings(d: object, name: str) -> dict:
@@ -234,4 +240,6 @@ def _checked(holder: type, d: dict, prefix: str) -> dict:
         least = _LEAST.get(k, 0.0)
         if kind in ("int", "float") and not v >= least:
             raise ValueError(f"{prefix}{k} must be at least {least:g}, got {v!r}")
+        if prefix + k in _POSITIVE and not v > 0:
+            raise ValueError(f"{prefix}{k} must be above 0, got {v!r}")
     return d
