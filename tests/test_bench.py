@@ -47,6 +47,8 @@ def test_bench_config_errors_are_one_line(tmp_path):
     ('{"preprocess": {"predicted_mask_margin": -3}}', "preprocess.predicted_mask_margin must be at least 0, got -3"),
     ('{"graph": {"huber_delta": 0}}', "graph.huber_delta must be above 0, got 0"),  # before: a LinAlgError
     ('{"sdf": {"refit_every": 0}}', "sdf.refit_every must be above 0, got 0"),  # before: a ZeroDivisionError
+    ('{"preprocess": {"min_depth": 0.5, "max_depth": 0.3}}',
+     "preprocess.max_depth \\(0.3\\) must be above preprocess.min_depth \\(0.5\\)"),
     ('{"graph": 3}', "graph must be a JSON object"),
     ("[1]", "the config must be a JSON object"),
 ])

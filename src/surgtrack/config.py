@@ -208,7 +208,11 @@ class TrackerConfig:
         kw = {}
         for k, v in _checked(cls, _settings(d, "the config"), "").items():
             kw[k] = sections[k](**_checked(sections[k], _settings(v, k), f"{k}.")) if k in sections else v
-        return cls(**kw)
+        cfg = cls(**kw)
+        near, far = cfg.preprocess.min_depth, cfg.preprocess.max_depth
+        if far <= near:  # no depth would be kept
+            raise ValueError(f"preprocess.max_depth ({far:g}) must be above preprocess.min_depth ({near:g})")
+        return cfg
 
 
 _TYPES = {"bool": (bool,), "int": (int,), "float": (int, float), "str": (str,)}
