@@ -2,14 +2,18 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import subprocess
 import sys
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 import pytest
 import trimesh
 
+from surgtrack.cli import main
 from surgtrack.config import TrackerConfig
 from surgtrack.io import ResultWriter, Sequence
 from surgtrack.tracker import SurgTracker
@@ -22,6 +26,19 @@ def surgtrack(*args: str | Path, timeout: float = 120) -> subprocess.CompletedPr
     if not SURGTRACK.is_file():
         pytest.fail(f"{SURGTRACK}: the surgtrack entry point is not installed beside the interpreter")
     return subprocess.run([str(SURGTRACK), *map(str, args)], capture_output=True, text=True, timeout=timeout)
+
+
+def surgtrack_here(*args: str | Path) -> subprocess.CompletedProcess:
+    """The entry point's `main` run in this process with these arguments, its output captured: the error paths,
+    which stop before any work, without an interpreter's start-up (the installed entry point: `surgtrack`)."""
+    out, err, code = io.StringIO(), io.StringIO(), 0
+    argv = ["surgtrack", *map(str, args)]
+    with mock.patch.object(sys, "argv", argv), contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            main()
+        except SystemExit as e:
+            code = e.code if isinstance(e.code, int) else int(e.code is not None)
+    return subprocess.CompletedProcess(argv, code, out.getvalue(), err.getvalue())
 
 
 def assert_one_line_error(run: subprocess.CompletedProcess, *fragments: str) -> str:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 
 import pytest
-from helpers import assert_one_line_error, surgtrack
+from helpers import assert_one_line_error, surgtrack_here
 
 from surgtrack.bench import _mean, format_table, method_config, suite_digest
 from surgtrack.config import TrackerConfig
@@ -35,7 +35,7 @@ def test_ablations_switch_on_top_of_a_given_config():
 def test_bench_config_errors_are_one_line(tmp_path):
     bad = tmp_path / "cfg.json"
     bad.write_text('{"graph": {"no_such_weight": 1}}')
-    assert_one_line_error(surgtrack("bench", "--config", bad, "--out", tmp_path / "b"), "cfg.json", "bad config")
+    assert_one_line_error(surgtrack_here("bench", "--config", bad, "--out", tmp_path / "b"), "cfg.json", "bad config")
     assert not (tmp_path / "b").exists()  # nothing rendered or run
 
 

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 import trimesh
-from helpers import assert_one_line_error, surgtrack, write_result
+from helpers import assert_one_line_error, surgtrack, surgtrack_here, write_result
 
 from surgtrack.geometry import make_T, so3_exp
 from surgtrack.io import SequenceWriter, open_sequence
@@ -81,7 +81,7 @@ def test_eval_bop_scene_of_real_frames(bop_scene, tmp_path: Path):
 def test_eval_bop_without_the_object(bop_scene, tmp_path: Path):
     scene, gt, _ = bop_scene
     out = write_result(tmp_path / "out", gt)
-    assert_one_line_error(surgtrack("eval", out, scene, "--obj-id", "4"), "mask_visib", "missing first-frame mask")
+    assert_one_line_error(surgtrack_here("eval", out, scene, "--obj-id", "4"), "mask_visib", "missing first-frame mask")
 
 
 # ------------------------------------------------------------------------------------------------ generated sequence
@@ -137,8 +137,9 @@ def test_eval_depth_scale_reaches_the_reader(generated, tmp_path: Path):
     run = surgtrack("eval", out, root, "--depth-scale", "0.0001")
     assert run.returncode == 0, run.stderr
     cv2.imwrite(str(root / "depth" / "000000.png"), np.full((24, 32), 2, np.uint16))  # metres as integers
-    assert_one_line_error(surgtrack("eval", out, root, "--depth-scale", "0.0001"), "000000.png", "units of 0.0001 m")
-    assert_one_line_error(surgtrack("eval", out, root, "--depth-scale", "0"), "--depth-scale must be positive")
+    assert_one_line_error(surgtrack_here("eval", out, root, "--depth-scale", "0.0001"), "000000.png",
+                          "units of 0.0001 m")
+    assert_one_line_error(surgtrack_here("eval", out, root, "--depth-scale", "0"), "--depth-scale must be positive")
 
 
 # ------------------------------------------------------------------------------------------------ errors
@@ -149,15 +150,15 @@ def test_eval_sequence_without_ground_truth(generated, tmp_path: Path):
     for p in (root / "gt" / "ob_in_cam").iterdir():
         p.unlink()
     out = write_result(tmp_path / "out", poses)
-    assert_one_line_error(surgtrack("eval", out, root), str(root), "no ground-truth poses")
+    assert_one_line_error(surgtrack_here("eval", out, root), str(root), "no ground-truth poses")
     assert not (out / "metrics.json").exists()
 
 
 def test_eval_bad_input_is_one_line(generated, tmp_path: Path):
     root, poses, _ = generated
-    assert_one_line_error(surgtrack("eval", tmp_path / "missing", root), "result folder does not exist")
+    assert_one_line_error(surgtrack_here("eval", tmp_path / "missing", root), "result folder does not exist")
     out = write_result(tmp_path / "out", poses)
     (out / "ob_in_cam" / "000002.txt").write_text("1 2 3\n")
-    assert_one_line_error(surgtrack("eval", out, root), "000002.txt", "expected a 4x4 matrix")
+    assert_one_line_error(surgtrack_here("eval", out, root), "000002.txt", "expected a 4x4 matrix")
     (root / "cam_K.txt").write_text("1 0\n0 1\n")
-    assert_one_line_error(surgtrack("eval", out, root), "cam_K.txt", "expected a 3x3 matrix")
+    assert_one_line_error(surgtrack_here("eval", out, root), "cam_K.txt", "expected a 3x3 matrix")

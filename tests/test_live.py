@@ -15,7 +15,7 @@ import pyigtl
 import pytest
 from click.testing import Result
 from helpers import assert_one_line_error as one_line_error
-from helpers import surgtrack
+from helpers import surgtrack, surgtrack_here
 from typer.testing import CliRunner
 
 from surgtrack.cli import app
@@ -407,7 +407,7 @@ def test_commands_refuse_bad_switches_or_a_file_for_a_folder_in_one_line(synth_s
                             (("demo", "--out", taken / "demo"), ("taken.txt/demo", "cannot make the folder")),
                             (("bench", "--suite", "instrument3d", "--short", "--out", taken),
                              ("taken.txt", "is a file, not a folder"))]:
-        one_line_error(surgtrack(*args), *fragments)
+        one_line_error(surgtrack_here(*args), *fragments)
     assert taken.read_text() == "kept" and not (tmp_path / "o").exists()
 
 

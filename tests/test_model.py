@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 import pytest
 import trimesh
-from helpers import assert_one_line_error, tracked
+from helpers import assert_one_line_error, surgtrack_here, tracked
 from helpers import surgtrack as run_surgtrack
 
 from surgtrack.config import TrackerConfig
@@ -364,7 +364,7 @@ def test_register_then_track_another_video(synth_seq, second_video, tmp_path):
     box = np.zeros((240, 320), np.uint8)
     box[:100, :100] = 255
     cv2.imwrite(str(elsewhere / "masks" / "000000.png"), box)
-    line = assert_one_line_error(surgtrack("track", elsewhere, "--out", tmp_path / "o2", "--model", model,
+    line = assert_one_line_error(surgtrack_here("track", elsewhere, "--out", tmp_path / "o2", "--model", model,
                                            "--config", config), "not found")
     assert str(elsewhere) in line
 
@@ -372,7 +372,7 @@ def test_register_then_track_another_video(synth_seq, second_video, tmp_path):
 def test_track_with_a_bad_model_file_is_one_line(synth_seq, tmp_path):
     bad = tmp_path / "bad.stm"
     bad.write_text("not a model")
-    line = assert_one_line_error(surgtrack("track", synth_seq, "--out", tmp_path / "out", "--model", bad))
+    line = assert_one_line_error(surgtrack_here("track", synth_seq, "--out", tmp_path / "out", "--model", bad))
     assert str(bad) in line and "not a surgtrack model" in line
     assert not (tmp_path / "out").exists()
 
@@ -398,5 +398,5 @@ def test_live_with_a_model_tracks_in_the_models_frame(scanned, synth_seq, second
     along, across = first_pose_error(synth_seq, model.keyframes[0].pose, video, poses[video.ids[0]])
     assert along < 0.03, along
     assert across < 0.04, across
-    assert_one_line_error(surgtrack("live", "--file", recording, "--mask", second_video / "masks" / "000000.png",
+    assert_one_line_error(surgtrack_here("live", "--file", recording, "--mask", second_video / "masks" / "000000.png",
                                     "--model", tmp_path / "none.stm", "--no-igtl"), "none.stm")
