@@ -202,8 +202,8 @@ class TrackerConfig:
     @classmethod
     def from_dict(cls, d: dict) -> TrackerConfig:
         """The config a JSON object of the `to_dict` layout gives, defaults for what it leaves out; a key that is
-        not a setting, a value of another type, a negative number or 0 where a size must be positive raises ValueError
-        naming it (``"graph.w_m"``)."""
+        not a setting, a value of another type, a negative number, 0 where a size must be positive, or a
+        ``preprocess.max_depth`` not above ``min_depth`` raises ValueError naming it (``"graph.w_m"``)."""
         sections = {f.name: f.default_factory for f in fields(cls) if f.default_factory is not MISSING}
         kw = {}
         for k, v in _checked(cls, _settings(d, "the config"), "").items():
