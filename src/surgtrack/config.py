@@ -216,7 +216,7 @@ class TrackerConfig:
 
 
 _TYPES = {"bool": (bool,), "int": (int,), "float": (int, float), "str": (str,)}
-_LEAST = {"relocalise_min_ncc": -1.0}  # every other number is a count, size, weight or share: none below 0
+_LEAST = {"failure.relocalise_min_ncc": -1.0}  # every other number is a count, size, weight or share: none below 0
 # Sizes, counts and scales that 0 would break (a division, an empty histogram or sample, no point kept): above 0.
 _POSITIVE = {"preprocess.bilateral_sigma_depth", "preprocess.colour_bins", "preprocess.normal_step",
              "preprocess.max_grazing_deg", "preprocess.max_depth", "pool.max_size", "graph.huber_delta",
@@ -241,7 +241,7 @@ def _checked(holder: type, d: dict, prefix: str) -> dict:
         types = _TYPES.get(kind)
         if types is not None and (not isinstance(v, types) or (isinstance(v, bool) and bool not in types)):
             raise ValueError(f"{prefix}{k} must be {kind}, got {v!r}")
-        least = _LEAST.get(k, 0.0)
+        least = _LEAST.get(prefix + k, 0.0)
         if kind in ("int", "float") and not v >= least:
             raise ValueError(f"{prefix}{k} must be at least {least:g}, got {v!r}")
         if prefix + k in _POSITIVE and not v > 0:
