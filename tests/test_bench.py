@@ -8,8 +8,9 @@ import pytest
 from helpers import assert_one_line_error, surgtrack_here
 
 from surgtrack.bench import _mean, format_table, method_config, suite_digest
-from surgtrack.config import TrackerConfig
+from surgtrack.config import GraphConfig, PreprocessConfig, TrackerConfig
 from surgtrack.synth import SynthSpec, shorten
+from surgtrack.tracker import SurgTracker
 
 
 def test_ablations_switch_one_component_each():
@@ -55,6 +56,14 @@ def test_bench_config_errors_are_one_line(tmp_path):
 def test_a_config_setting_of_the_wrong_name_or_type_is_named(text: str, problem: str):
     with pytest.raises(ValueError, match=problem.replace(".", r"\.")):
         TrackerConfig.from_dict(json.loads(text))
+
+
+def test_a_config_built_in_code_is_checked_when_a_tracker_takes_it():
+    with pytest.raises(ValueError, match=r"graph\.huber_delta must be above 0, got 0"):
+        SurgTracker(TrackerConfig(graph=GraphConfig(huber_delta=0)))
+    with pytest.raises(ValueError, match=r"preprocess\.predicted_mask_margin must be int, got 4\.0"):
+        SurgTracker(TrackerConfig(preprocess=PreprocessConfig(predicted_mask_margin=4.0)))
+    SurgTracker(TrackerConfig(graph=GraphConfig(w_m=0)))  # 0 turns a weight off
 
 
 def test_a_config_reads_back_as_written_and_keeps_the_defaults_it_leaves_out():

@@ -199,6 +199,11 @@ class TrackerConfig:
     def to_dict(self) -> dict:
         return asdict(self)
 
+    def check(self) -> None:
+        """Raise `from_dict`'s ValueError for a setting it would refuse: a config built in code (``GraphConfig(
+        huber_delta=0)``) meets the checks of one read from a file."""
+        TrackerConfig.from_dict(self.to_dict())
+
     @classmethod
     def from_dict(cls, d: dict) -> TrackerConfig:
         """The config a JSON object of the `to_dict` layout gives, defaults for what it leaves out; a key that is

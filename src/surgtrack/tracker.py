@@ -222,6 +222,7 @@ class SurgTracker:
 
     def __init__(self, config: TrackerConfig | None = None, model: InstrumentModel | None = None):
         self.cfg = config or TrackerConfig()
+        self.cfg.check()
         self.extractor = FeatureExtractor(self.cfg.ransac.features, self.cfg.ransac.max_keypoints)
         self._observer: FeatureExtractor | None = None  # observe()'s own: the extractor keeps its last detection
         self.pool = MemoryPool(self.cfg.pool)
