@@ -347,7 +347,7 @@ def test_live_tracks_a_recording_and_streams(live_run: dict, recording: Path, sy
 
 def test_live_with_a_box_starts_from_the_box_mask(recording: Path, fast_config: Path, tmp_path: Path):
     run = surgtrack_here("live", "--file", recording, "--box", "190,50,270,100", "--out", tmp_path, "--no-igtl",
-              "--max-frames", "3", "--config", fast_config)
+                         "--max-frames", "3", "--config", fast_config)
     assert run.returncode == 0, run.stdout + run.stderr
     records = (tmp_path / "track.jsonl").read_text().splitlines()
     assert len(records) == 3

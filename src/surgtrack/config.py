@@ -200,8 +200,8 @@ class TrackerConfig:
         return asdict(self)
 
     def check(self) -> None:
-        """Raise `from_dict`'s ValueError for a setting it would refuse: a config built in code (``GraphConfig(
-        huber_delta=0)``) meets the checks of one read from a file."""
+        """Raise `from_dict`'s ValueError for a setting it would refuse, so that a config built in code
+        (``GraphConfig(huber_delta=0)``) meets the checks of one read from a file."""
         TrackerConfig.from_dict(self.to_dict())
 
     @classmethod
